@@ -1,0 +1,8 @@
+# The two commands of the README. ARGS passes options to plvo-viz, e.g. make run ARGS="--seq 04 --root ../shared/data/kitti".
+.PHONY: run test bench
+run:
+	bash scripts/setup.sh && .venv/bin/plvo-viz $(ARGS)
+test:
+	bash scripts/setup.sh --test && .venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
+bench:
+	bash scripts/setup.sh && .venv/bin/plvo bench $(ARGS)

@@ -1,0 +1,216 @@
+"""Configuration: nested frozen dataclasses, one per subsystem, with the paper's parameters as defaults.
+
+Load with `load_config(path)` (TOML; unknown keys are rejected by their dotted name), save with `save_config`.
+Degrees appear only in fields whose name says so (`*_deg`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from plvo.atomic import write_text_atomic
+from plvo.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class OrbConfig:
+    n_features: int = 1000  # paper, III: 1000 ORB features an image
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20  # ORB-SLAM2's iniThFAST
+    fast_threshold_min: int = 7  # ORB-SLAM2's minThFAST, retried in cells that found nothing
+    grid_cell_px: int = 35  # bucketing cell size for even spread (ORB-SLAM2 uses 30 px at level 0)
+    edge_threshold: int = 19
+
+
+@dataclass(frozen=True)
+class LineConfig:
+    min_length_px: float = 50.0  # paper, III: segments under 50 px are discarded
+    chain_endpoint_px: float = 8.0  # endpoints this close may be chained
+    chain_angle_deg: float = 3.0  # chained segments must be this collinear
+    chain_offset_px: float = 1.5  # and lie this close to each other's supporting line
+    merge_distance_px: float = 3.0  # near-parallel segments this close are merged (double edges)
+    merge_angle_deg: float = 3.0
+    merge_overlap: float = 0.5  # fraction of the shorter segment that must overlap the longer
+    max_iterations: int = 10  # repeat chaining and merging until stable, at most this often
+    lsd_scale: float = 0.8
+    max_lines: int = 300  # keep the longest segments when more are found
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    point_ratio: float = 0.8  # Lowe ratio for ORB Hamming matches
+    point_max_hamming: int = 64
+    point_mutual: bool = True
+    point_window_px: float = 60.0  # search radius around the predicted position, when a prediction exists
+    line_max_lbd: int = 80  # LBD Hamming distance bound
+    line_angle_deg: float = 2.0  # paper, III: angle threshold 2 deg
+    line_length_ratio: float = 0.1  # paper, III: length difference ratio 0.1
+    line_midpoint_px: float = 5.0  # paper, III: midpoint distance 5 px (after the predicted motion)
+    line_midpoint_px_unpredicted: float = 40.0  # window when no motion prediction is available
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    point_patch_px: int = 7  # half-size of the square patch searched around a point feature
+    line_patch_px: int = 4  # half-width of the band searched around a line feature
+    min_points: int = 4  # fewer lidar points in a patch: no prior
+    depth_jump_ratio: float = 0.05  # depth discontinuity between foreground and background, relative
+    depth_jump_min_m: float = 0.3
+    plane_inlier_m: float = 0.08
+    plane_max_rms_m: float = 0.1
+    min_ray_plane_cos: float = 0.1  # rays closer to parallel with the plane give no depth
+    max_depth_m: float = 80.0
+    line_min_points: int = 6
+    line_max_rms_m: float = 0.15
+    line_lm_iterations: int = 20
+    line_reprojection_weight: float = 1.0  # weight of the image-line term against point distances (1/px)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    points_only: bool = False  # the paper's point-only baseline
+    use_depth_priors: bool = True  # ablation "no depth priors": landmarks by triangulation only
+    keyframe_every: int = 3  # paper: a keyframe every 3-4 frames
+    keyframe_max_gap: int = 4
+    min_tracked_landmarks: int = 60  # fewer: make a keyframe early
+    max_rotation_deg: float = 10.0  # larger rotation since the last keyframe: make a keyframe early
+    min_pnp_inliers: int = 15  # fewer: tracking is lost and re-initialised from the current lidar depth
+    ransac_reproj_px: float = 2.0
+    ransac_line_px: float = 2.0
+    ransac_iterations: int = 1000
+    outlier_reproj_px: float = 3.0
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    method: str = "ndt"  # "ndt", or "icp" / "gicp" directly
+    fallback: str = "icp"  # used when NDT fails; "none" to disable
+    voxel_m: float = 0.5
+    ndt_resolution_m: float = 1.0
+    max_iterations: int = 30
+    max_range_m: float = 60.0
+    max_correspondence_m: float = 1.0
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    scale_correction: bool = True  # ablation "no scale correction"
+    window_keyframes: int = 8
+    sigma_point_px: float = 0.1  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)
+    sigma_line: float = 0.2  # paper, III: Sigma^L = 0.2 I
+    huber_point: float = 2.0
+    huber_line: float = 2.0
+    iterations: int = 10
+    concurrent: bool = True  # run the back end in its own worker beside the tracker
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = True
+    min_keyframe_gap: int = 30  # ignore candidates among the last keyframes
+    min_score: float = 0.3
+    consistency: int = 3  # consecutive keyframes that must agree
+    min_inliers: int = 30
+
+
+@dataclass(frozen=True)
+class SystemConfig:
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    lines: LineConfig = field(default_factory=LineConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+
+# The paper's ablations, as overrides of the full system.
+ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
+    "full": {},
+    "no_depth_priors": {"tracking": {"use_depth_priors": False}},
+    "no_scale_correction": {"backend": {"scale_correction": False}},
+    "points_only": {"tracking": {"points_only": True}},
+}
+
+
+def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if key not in fields:
+            raise ConfigError(f"unknown config key '{name}'")
+        want = hints[key]
+        if dataclasses.is_dataclass(want):
+            if not isinstance(value, dict):
+                raise ConfigError(f"config key '{name}' must be a table")
+            kwargs[key] = _from_dict(want, value, f"{name}.")
+            continue
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, want) or (want is int and isinstance(value, bool)):
+            raise ConfigError(f"config key '{name}' must be {want.__name__}, got {type(value).__name__}")
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict[str, Any]) -> SystemConfig:
+    """Build a config from nested dicts; unknown keys raise ConfigError naming the dotted key."""
+    return _from_dict(SystemConfig, data, "")
+
+
+def merge(base: SystemConfig, overrides: dict[str, Any]) -> SystemConfig:
+    """Return `base` with the nested `overrides` applied (validated like a file)."""
+    merged = config_to_dict(base)
+    for section, values in overrides.items():
+        if not isinstance(values, dict):
+            raise ConfigError(f"config key '{section}' must be a table")
+        merged.setdefault(section, {}).update(values)
+    return config_from_dict(merged)
+
+
+def with_ablation(base: SystemConfig, name: str) -> SystemConfig:
+    if name not in ABLATIONS:
+        raise ConfigError(f"unknown ablation '{name}' (choose from {', '.join(ABLATIONS)})")
+    return merge(base, ABLATIONS[name])
+
+
+def load_config(path: str | os.PathLike[str] | None) -> SystemConfig:
+    """Read a TOML config; None gives the defaults."""
+    if path is None:
+        return SystemConfig()
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML ({exc})") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def config_to_toml(cfg: SystemConfig) -> str:
+    import tomli_w
+
+    return tomli_w.dumps(config_to_dict(cfg))
+
+
+def save_config(cfg: SystemConfig, path: str | os.PathLike[str]) -> None:
+    """Write the resolved config as TOML, atomically."""
+    write_text_atomic(Path(path), config_to_toml(cfg))

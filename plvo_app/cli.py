@@ -1,0 +1,78 @@
+"""Command-line entry points: `plvo-viz` and `plvo <subcommand>`.
+
+Each subcommand lives in its own module `plvo_app.cmd_<name>` exposing `add_arguments(parser)` and `run(args)`.
+A PlvoError is printed as one line and the process exits with status 2; Ctrl-C exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from plvo.errors import PlvoError
+
+# name -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("plvo_app.cmd_viz", "run the pipeline on a sequence (same as plvo-viz)"),
+    "view": ("plvo_app.cmd_view", "inspect a saved .rrd recording in the viser viewer"),
+    "synth": ("plvo_app.cmd_synth", "generate a synthetic town sequence in the KITTI odometry layout"),
+    "eval": ("plvo_app.cmd_eval", "evaluate trajectories with the KITTI metric; run evaluations and ablations"),
+    "bench": ("plvo_app.cmd_bench", "time the stages and the whole system; writes JSON"),
+    "vocab": ("plvo_app.cmd_vocab", "train the ORB and LBD bag-of-words vocabularies"),
+}
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _guarded(func, args) -> int:
+    try:
+        return int(func(args) or 0)
+    except PlvoError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="plvo", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    modules = {}
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            continue  # subcommand not built yet
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(p)
+        modules[name] = module
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    return _guarded(modules[args.command].run, args)
+
+
+def main_viz(argv: Sequence[str] | None = None) -> int:
+    from plvo_app import cmd_viz
+
+    parser = argparse.ArgumentParser(prog="plvo-viz", description=cmd_viz.__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    cmd_viz.add_arguments(parser)
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    return _guarded(cmd_viz.run, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
