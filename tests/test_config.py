@@ -1,0 +1,86 @@
+"""Config: the paper's defaults, TOML round trip, unknown keys rejected by name, ablations."""
+
+from __future__ import annotations
+
+import pytest
+
+from plvo.config import (
+    ABLATIONS,
+    SystemConfig,
+    config_to_toml,
+    load_config,
+    save_config,
+    with_ablation,
+)
+from plvo.errors import ConfigError
+
+
+def test_paper_defaults():
+    cfg = SystemConfig()
+    assert cfg.orb.n_features == 1000
+    assert cfg.lines.min_length_px == 50.0
+    assert cfg.matching.line_angle_deg == 2.0
+    assert cfg.matching.line_length_ratio == 0.1
+    assert cfg.matching.line_midpoint_px == 5.0
+    assert cfg.backend.sigma_point_px == 0.1
+    assert cfg.backend.sigma_line == 0.2
+    assert 3 <= cfg.tracking.keyframe_every <= cfg.tracking.keyframe_max_gap <= 4
+
+
+def test_toml_round_trip(tmp_path):
+    cfg = with_ablation(SystemConfig(), "points_only")
+    path = tmp_path / "config.toml"
+    save_config(cfg, path)
+    assert load_config(path) == cfg
+    assert not list(tmp_path.glob(".*part"))  # the atomic write left no temporary file
+
+
+def test_partial_file_keeps_other_defaults(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[orb]\nn_features = 500\n[backend]\nsigma_line = 1\n")
+    cfg = load_config(path)
+    assert cfg.orb.n_features == 500
+    assert cfg.backend.sigma_line == 1.0 and isinstance(cfg.backend.sigma_line, float)
+    assert cfg.lines == SystemConfig().lines
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("[orb]\nn_featurs = 5\n", "orb.n_featurs"),
+        ("[nosuch]\nx = 1\n", "nosuch"),
+        ("orb = 3\n", "orb"),
+        ("[orb]\nn_features = 'many'\n", "orb.n_features"),
+        ("[tracking]\npoints_only = 1\n", "tracking.points_only"),
+    ],
+)
+def test_bad_keys_are_named(tmp_path, text, key):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert key in str(err.value) and str(path) in str(err.value)
+
+
+def test_missing_and_invalid_files(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "none.toml")
+    (tmp_path / "x.toml").write_text("[orb\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(tmp_path / "x.toml")
+
+
+def test_ablations_change_what_they_say():
+    base = SystemConfig()
+    assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only"}
+    assert with_ablation(base, "full") == base
+    assert with_ablation(base, "no_depth_priors").tracking.use_depth_priors is False
+    assert with_ablation(base, "no_scale_correction").backend.scale_correction is False
+    assert with_ablation(base, "points_only").tracking.points_only is True
+    with pytest.raises(ConfigError, match="unknown ablation"):
+        with_ablation(base, "nope")
+
+
+def test_toml_text_is_readable():
+    text = config_to_toml(SystemConfig())
+    assert "[orb]" in text and "n_features = 1000" in text
