@@ -16,56 +16,61 @@ def hat(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def _series(theta: float) -> tuple[float, float, float]:
+    """(sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3), by Taylor series near 0 where the closed forms cancel."""
+    if theta < 1e-3:
+        t2 = theta * theta
+        return (
+            1.0 - t2 / 6.0 + t2 * t2 / 120.0,
+            0.5 - t2 / 24.0 + t2 * t2 / 720.0,
+            1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0,
+        )
+    return np.sin(theta) / theta, (1.0 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
+
+
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     """(3,) rotation vector -> (3,3) rotation matrix (Rodrigues)."""
     phi = np.asarray(phi, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    a, b, _ = _series(float(np.linalg.norm(phi)))
     W = hat(phi)
-    if theta < 1e-8:
-        return np.eye(3) + W + 0.5 * W @ W
-    return np.eye(3) + np.sin(theta) / theta * W + (1 - np.cos(theta)) / theta**2 * W @ W
+    return np.eye(3) + a * W + b * W @ W
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """(3,3) rotation matrix -> (3,) rotation vector with norm in [0, pi]."""
     R = np.asarray(R, dtype=float)
-    cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_t))
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-6:
-        return 0.5 * v
-    if np.pi - theta < 1e-4:
-        # Near pi the antisymmetric part vanishes; read the axis off the symmetric part instead.
-        B = (R + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
-        k = int(np.argmax(axis))
-        axis = B[k] / max(axis[k], _EPS)
+    cos_t = (np.trace(R) - 1.0) / 2.0
+    # atan2 keeps full precision near 0 and pi, where arccos of the trace loses half the digits.
+    theta = float(np.arctan2(0.5 * np.linalg.norm(v), cos_t))
+    if np.pi - theta < 1e-2:
+        # Near pi the antisymmetric part vanishes; read the axis off the symmetric part, which is
+        # cos(t) I + (1 - cos(t)) a a^T exactly (the antisymmetric part must be dropped, else it leaks in).
+        aat = (0.5 * (R + R.T) - np.cos(theta) * np.eye(3)) / (1.0 - np.cos(theta))
+        k = int(np.argmax(np.diag(aat)))
+        axis = aat[k] / np.sqrt(max(aat[k, k], _EPS))
         axis /= np.linalg.norm(axis)
         if np.dot(axis, v) < 0:
             axis = -axis
         return theta * axis
-    return theta / (2.0 * np.sin(theta)) * v
+    return 0.5 / _series(theta)[0] * v
 
 
 def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(phi))
+    _, b, c = _series(float(np.linalg.norm(phi)))
     W = hat(phi)
-    if theta < 1e-6:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
-    return (
-        np.eye(3)
-        + (1 - np.cos(theta)) / theta**2 * W
-        + (theta - np.sin(theta)) / theta**3 * W @ W
-    )
+    return np.eye(3) + b * W + c * W @ W
 
 
 def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     theta = float(np.linalg.norm(phi))
     W = hat(phi)
-    if theta < 1e-6:
-        return np.eye(3) - 0.5 * W + W @ W / 12.0
-    half = theta / 2.0
-    coef = (1.0 - half * np.cos(half) / np.sin(half)) / theta**2
+    if theta < 1e-3:
+        t2 = theta * theta
+        coef = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0
+    else:
+        half = theta / 2.0
+        coef = (1.0 - half * np.cos(half) / np.sin(half)) / theta**2
     return np.eye(3) - 0.5 * W + coef * W @ W
 
 
@@ -132,8 +137,9 @@ def to_gtsam_tangent(xi: np.ndarray) -> np.ndarray:
 
 def rotation_angle(T: np.ndarray) -> float:
     """Rotation angle of a pose or rotation matrix, radians."""
-    R = T[:3, :3]
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    R = np.asarray(T)[:3, :3]
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.arctan2(s, (np.trace(R) - 1.0) / 2.0))
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
