@@ -1,0 +1,94 @@
+"""The dataset protocol every sequence source follows (KITTI odometry, KITTI raw, synthetic town).
+
+A dataset is a selected range of frames of one sequence. Positions `0..len-1` index that range; each Frame
+carries the dataset's own frame number in `Frame.index`. Images and scans are read lazily by `__getitem__`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from plvo.errors import DatasetError
+from plvo.types import Calibration, Frame
+
+
+@runtime_checkable
+class Dataset(Protocol):
+    """A selected range of frames of one sequence.
+
+    name: the source ("kitti_odometry", "kitti_raw", ...); sequence: its sequence name ("04",
+    "2011_09_26_drive_0009"); calib: calibration of the chosen camera.
+    """
+
+    name: str
+    sequence: str
+    calib: Calibration
+
+    def __len__(self) -> int:
+        """Number of selected frames."""
+        ...
+
+    def __getitem__(self, i: int) -> Frame:
+        """Frame at position i (0..len-1, negatives from the end); IndexError outside; Frame.index = frame number."""
+        ...
+
+    @property
+    def gt_T_world_cam(self) -> np.ndarray | None:
+        """(len,4,4) ground-truth poses of the chosen camera in the world (cam0 of the sequence's frame 0), or None."""
+        ...
+
+    @property
+    def frame_indices(self) -> tuple[int, ...]:
+        """The dataset's frame numbers of positions 0..len-1."""
+        ...
+
+    @property
+    def times(self) -> np.ndarray:
+        """(len,) timestamps in seconds."""
+        ...
+
+
+def iter_frames(dataset: Dataset) -> Iterator[Frame]:
+    """Frames of a dataset in order, read one at a time."""
+    for i in range(len(dataset)):
+        yield dataset[i]
+
+
+FrameSelection = slice | range | Sequence[int] | None
+
+
+def _format_selection(frames: FrameSelection) -> str:
+    if isinstance(frames, slice):
+        parts = ["" if v is None else str(v) for v in (frames.start, frames.stop)]
+        if frames.step is not None:
+            parts.append(str(frames.step))
+        return ":".join(parts)
+    if isinstance(frames, range):
+        return f"range({frames.start}, {frames.stop}, {frames.step})"
+    return repr(frames)
+
+
+def select_frames(frames: FrameSelection, n: int, where: str) -> tuple[int, ...]:
+    """Frame numbers picked by `frames` among 0..n-1: a slice (Python semantics, but bounds beyond n are errors),
+    a range or a sequence of frame numbers, or None for all. `where` names the sequence in error messages."""
+    label = _format_selection(frames)
+    if frames is None:
+        selected: Sequence[int] = range(n)
+    elif isinstance(frames, slice):
+        if frames.step == 0:
+            raise DatasetError(f"frames {label}: step must not be 0")
+        for bound in (frames.start, frames.stop):
+            if bound is not None and not -n <= bound <= n:
+                raise DatasetError(f"frames {label}: out of range, {where} has frames 0..{n - 1}")
+        selected = range(n)[frames]
+    else:
+        selected = [int(i) for i in frames]
+        bad = [i for i in selected if not 0 <= i < n]
+        if bad:
+            raise DatasetError(f"frames {label}: frame {bad[0]} out of range, {where} has frames 0..{n - 1}")
+    if len(selected) == 0:
+        raise DatasetError(f"frames {label}: no frame selected, {where} has frames 0..{n - 1}")
+    return tuple(int(i) for i in selected)

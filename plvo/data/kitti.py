@@ -1,0 +1,351 @@
+"""KITTI odometry and raw layouts, read through pykitti.
+
+Odometry: `root/sequences/NN/{image_0..3, velodyne, calib.txt, times.txt}` and `root/poses/NN.txt`.
+Raw: `root/DATE/DATE_drive_NNNN_sync/{image_00..03/data, velodyne_points/data, oxts/data, oxts/timestamps.txt}`
+and `root/DATE/calib_{cam_to_cam, velo_to_cam, imu_to_velo}.txt`; ground truth from oxts, as cam0 poses relative
+to the drive's frame 0.
+
+pykitti parses calibration, timestamps and oxts and reads the files; this module checks the layout first so that
+bad data raises a DatasetError / CalibrationError naming the file and frame instead of a KeyError or IndexError.
+Construction lists files and reads headers only; images and scans are read by `__getitem__`.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import pykitti
+import pykitti.utils as kitti_utils
+from PIL import Image, UnidentifiedImageError
+
+from plvo.data.dataset import FrameSelection, select_frames
+from plvo.data.trajectory import read_kitti_poses
+from plvo.errors import CalibrationError, DatasetError, TrajectoryError
+from plvo.geometry import se3
+from plvo.types import Calibration, Frame
+
+log = logging.getLogger(__name__)
+
+CAMERAS = (0, 1, 2, 3)  # 0/1 gray left/right, 2/3 colour left/right (converted to gray)
+RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})(?:_sync)?$")
+_OXTS_FIELDS = 30
+
+
+def _check_camera(camera: int) -> int:
+    if camera not in CAMERAS:
+        raise DatasetError(f"camera {camera!r}: must be 0 or 1 (gray left/right) or 2 or 3 (colour left/right)")
+    return int(camera)
+
+
+def _numbered_files(directory: Path, suffix: str) -> dict[int, Path]:
+    """Files named by a frame number (`000012.png`) in a directory -> {number: path}."""
+    if not directory.is_dir():
+        return {}
+    return {int(p.stem): p for p in directory.glob(f"*{suffix}") if p.stem.isdigit()}
+
+
+def _name_of(files: dict[int, Path], directory: Path, frame: int, suffix: str) -> Path:
+    width = len(next(iter(files.values())).stem) if files else 6
+    return directory / f"{frame:0{width}d}{suffix}"
+
+
+def _check_listing(images: dict[int, Path], image_dir: Path, scans: dict[int, Path], scan_dir: Path) -> int:
+    """Number of frames n; raises unless images and scans both exist for exactly the frames 0..n-1."""
+    if not images:
+        raise DatasetError(f"{image_dir}: no images (*.png)")
+    if not scans:
+        raise DatasetError(f"{scan_dir}: no scans (*.bin)")
+    n = max(len(images), len(scans))
+    counts = f"{len(images)} images in {image_dir} but {len(scans)} scans in {scan_dir}: "
+    if len(images) == len(scans):
+        counts = ""
+    for k in range(n):
+        if k not in images:
+            raise DatasetError(f"{counts}{_name_of(images, image_dir, k, '.png')}: missing image (frame {k})")
+        if k not in scans:
+            raise DatasetError(f"{counts}{_name_of(scans, scan_dir, k, '.bin')}: missing scan (frame {k})")
+    return n
+
+
+def _check_scan_size(path: Path, frame: int) -> None:
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read scan (frame {frame}): {exc}") from None
+    if size % 16:
+        raise DatasetError(
+            f"{path}: {size} bytes is not a multiple of 16 (float32 x,y,z,reflectance) (frame {frame})"
+        )
+    if size == 0:
+        raise DatasetError(f"{path}: empty scan (frame {frame})")
+
+
+def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
+    """pykitti's calib parser, with every needed key checked for presence and size."""
+    if not path.is_file():
+        raise CalibrationError(f"{path}: calibration file not found")
+    try:
+        data = kitti_utils.read_calib_file(str(path))
+    except (OSError, ValueError) as exc:
+        raise CalibrationError(f"{path}: cannot parse calibration ({exc})") from None
+    for key, size in needed.items():
+        if key not in data:
+            raise CalibrationError(f"{path}: no '{key}' matrix")
+        if data[key].size != size:
+            raise CalibrationError(f"{path}: '{key}' has {data[key].size} numbers, expected {size}")
+    return data
+
+
+def _image_size(path: Path, frame: int) -> tuple[int, int]:
+    try:
+        with Image.open(path) as img:  # reads the header only
+            return img.size
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DatasetError(f"{path}: unreadable image (frame {frame}): {exc}") from None
+
+
+def _calibration(calib, camera: int, width: int, height: int) -> Calibration:
+    """pykitti calib namedtuple -> Calibration of the chosen camera (rectified)."""
+    T_cam_velo = np.asarray(getattr(calib, f"T_cam{camera}_velo"), dtype=np.float64)
+    T_cam0_cam = np.eye(4)
+    if camera != 0:  # rectified cameras differ by a translation along x only
+        T_cam0_cam = np.asarray(calib.T_cam0_velo, dtype=np.float64) @ np.linalg.inv(T_cam_velo)
+    return Calibration(
+        K=np.asarray(getattr(calib, f"K_cam{camera}"), dtype=np.float64).copy(),
+        T_cam_velo=T_cam_velo,
+        width=int(width),
+        height=int(height),
+        T_cam0_cam=T_cam0_cam,
+    )
+
+
+class _KittiSequence:
+    """Shared lazy reading of a selected range of KITTI frames (image + scan files per frame number)."""
+
+    name: str
+
+    def _init_frames(
+        self,
+        sequence: str,
+        calib: Calibration,
+        frames: tuple[int, ...],
+        images: dict[int, Path],
+        scans: dict[int, Path],
+        times: np.ndarray,
+        gt: np.ndarray | None,
+    ) -> None:
+        self.sequence = sequence
+        self.calib = calib
+        self._frames = frames
+        self._images = [images[k] for k in frames]
+        self._scans = [scans[k] for k in frames]
+        self._times = np.asarray(times, dtype=np.float64)
+        self._gt = gt
+        for k, path in zip(frames, self._scans):
+            _check_scan_size(path, k)
+        log.info("%s %s: %d frames (%d..%d), %dx%d", self.name, sequence, len(frames), frames[0], frames[-1],
+                 calib.width, calib.height)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, i: int) -> Frame:
+        """Frame at position i (0..len-1) of the selection; Frame.index is the dataset's frame number."""
+        n = len(self._frames)
+        if not -n <= i < n:
+            raise IndexError(f"position {i} out of range for {n} frames")
+        i %= n
+        gt = None if self._gt is None else self._gt[i].copy()
+        return Frame(
+            index=self._frames[i],
+            time=float(self._times[i]),
+            image=self._load_image(i),
+            scan=self._load_scan(i),
+            calib=self.calib,
+            gt_T_world_cam=gt,
+        )
+
+    @property
+    def gt_T_world_cam(self) -> np.ndarray | None:
+        return None if self._gt is None else self._gt.copy()
+
+    @property
+    def frame_indices(self) -> tuple[int, ...]:
+        return self._frames
+
+    @property
+    def times(self) -> np.ndarray:
+        return self._times.copy()
+
+    def _load_image(self, i: int) -> np.ndarray:
+        path, frame = self._images[i], self._frames[i]
+        try:
+            image = np.asarray(kitti_utils.load_image(str(path), mode="L"), dtype=np.uint8)
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: missing image (frame {frame})") from None
+        except (OSError, UnidentifiedImageError) as exc:
+            raise DatasetError(f"{path}: unreadable image (frame {frame}): {exc}") from None
+        if image.shape != (self.calib.height, self.calib.width):
+            raise DatasetError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]}, but the first frame's is "
+                f"{self.calib.width}x{self.calib.height} (frame {frame})"
+            )
+        return image
+
+    def _load_scan(self, i: int) -> np.ndarray:
+        path, frame = self._scans[i], self._frames[i]
+        _check_scan_size(path, frame)
+        scan = kitti_utils.load_velo_scan(str(path))
+        bad = ~np.isfinite(scan).all(axis=1)
+        if bad.any():
+            raise DatasetError(
+                f"{path}: {int(bad.sum())} of {len(scan)} points have NaN or infinite values (frame {frame})"
+            )
+        return scan
+
+
+class _PykittiOdometry(pykitti.odometry):
+    """pykitti's odometry loader without its pose reading (which prints instead of raising)."""
+
+    def _load_poses(self) -> None:
+        self.poses = []
+
+
+class KittiOdometry(_KittiSequence):
+    """KITTI odometry sequence `root/sequences/NN` with ground truth from `root/poses/NN.txt` when present."""
+
+    name = "kitti_odometry"
+
+    def __init__(self, root: str | Path, sequence: str, frames: FrameSelection = None, camera: int = 0) -> None:
+        root, camera = Path(root), _check_camera(camera)
+        seq_dir = root / "sequences" / sequence
+        if not seq_dir.is_dir():
+            raise DatasetError(f"{seq_dir}: no such odometry sequence directory")
+        image_dir, scan_dir = seq_dir / f"image_{camera}", seq_dir / "velodyne"
+        images, scans = _numbered_files(image_dir, ".png"), _numbered_files(scan_dir, ".bin")
+        n = _check_listing(images, image_dir, scans, scan_dir)
+        selected = select_frames(frames, n, f"sequence {sequence} ({n} frames in {image_dir})")
+        _read_calib(seq_dir / "calib.txt", {"P0": 12, "P1": 12, "P2": 12, "P3": 12, "Tr": 12})
+        times_file = seq_dir / "times.txt"
+        times = _read_times(times_file, n)
+        try:
+            data = _PykittiOdometry(str(root), sequence)
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{seq_dir}: pykitti cannot load the sequence: {exc}") from None
+        width, height = _image_size(images[selected[0]], selected[0])
+        calib = _calibration(data.calib, camera, width, height)
+        gt = _odometry_gt(root / "poses" / f"{sequence}.txt", selected, calib.T_cam0_cam)
+        self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt)
+
+
+def _read_times(path: Path, n: int) -> np.ndarray:
+    """times.txt -> (M,) seconds with M >= n, naming the file and line of a bad value."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: timestamps file not found")
+    values = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            values.append(float(line))
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: not a timestamp: {line.strip()!r}") from None
+    if len(values) < n:
+        raise DatasetError(f"{path}: {len(values)} timestamps for {n} frames")
+    return np.asarray(values)
+
+
+def _odometry_gt(pose_file: Path, frames: tuple[int, ...], T_cam0_cam: np.ndarray) -> np.ndarray | None:
+    if not pose_file.is_file():
+        log.info("no ground truth: %s not found", pose_file)
+        return None
+    try:
+        poses = read_kitti_poses(pose_file)
+    except TrajectoryError as exc:
+        raise DatasetError(str(exc)) from None
+    if len(poses) <= max(frames):
+        raise DatasetError(f"{pose_file}: {len(poses)} poses, but frame {max(frames)} is selected")
+    return poses[list(frames)] @ T_cam0_cam
+
+
+class KittiRaw(_KittiSequence):
+    """KITTI raw synced drive `root/DATE/DATE_drive_NNNN_sync`; ground truth from oxts (cam0 of frame 0 = world)."""
+
+    name = "kitti_raw"
+
+    def __init__(self, root: str | Path, drive: str, frames: FrameSelection = None, camera: int = 0) -> None:
+        root, camera = Path(root), _check_camera(camera)
+        match = RAW_DRIVE.match(drive)
+        if match is None:
+            raise DatasetError(f"raw drive {drive!r}: expected a name like 2011_09_26_drive_0009")
+        date, number = match.group(1), match.group(2)
+        drive_dir = root / date / f"{date}_drive_{number}_sync"
+        if not drive_dir.is_dir():
+            raise DatasetError(f"{drive_dir}: no such raw drive directory")
+        image_dir = drive_dir / f"image_0{camera}" / "data"
+        scan_dir, oxts_dir = drive_dir / "velodyne_points" / "data", drive_dir / "oxts" / "data"
+        images, scans = _numbered_files(image_dir, ".png"), _numbered_files(scan_dir, ".bin")
+        n = _check_listing(images, image_dir, scans, scan_dir)
+        _check_oxts_listing(oxts_dir, n)
+        selected = select_frames(frames, n, f"drive {date}_drive_{number} ({n} frames in {image_dir})")
+        _check_raw_calib(root / date)
+        stamps = drive_dir / "oxts" / "timestamps.txt"
+        if not stamps.is_file():
+            raise DatasetError(f"{stamps}: timestamps file not found")
+        if len(stamps.read_text().splitlines()) < n:
+            raise DatasetError(f"{stamps}: fewer timestamps than the {n} frames")
+        data = _load_pykitti_raw(root, date, number, selected, oxts_dir)
+        width, height = _image_size(images[selected[0]], selected[0])
+        calib = _calibration(data.calib, camera, width, height)
+        times = np.array([(t - data.timestamps[0]).total_seconds() for t in data.timestamps[1:]])
+        gt = _raw_gt(data, calib.T_cam0_cam)
+        self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt)
+
+
+def _check_oxts_listing(oxts_dir: Path, n: int) -> None:
+    oxts = _numbered_files(oxts_dir, ".txt")
+    for k in range(n):
+        if k not in oxts:
+            raise DatasetError(f"{_name_of(oxts, oxts_dir, k, '.txt')}: missing oxts record (frame {k})")
+
+
+def _check_raw_calib(date_dir: Path) -> None:
+    _read_calib(date_dir / "calib_imu_to_velo.txt", {"R": 9, "T": 3})
+    _read_calib(date_dir / "calib_velo_to_cam.txt", {"R": 9, "T": 3})
+    needed = {f"P_rect_0{c}": 12 for c in CAMERAS} | {f"R_rect_0{c}": 9 for c in CAMERAS}
+    _read_calib(date_dir / "calib_cam_to_cam.txt", needed)
+
+
+def _load_pykitti_raw(root: Path, date: str, number: str, selected: tuple[int, ...], oxts_dir: Path):
+    """pykitti.raw over frame 0 followed by the selection (frame 0 is the origin of the oxts poses and times)."""
+    try:
+        return pykitti.raw(str(root), date, number, frames=[0, *selected])
+    except (ValueError, TypeError, IndexError) as exc:
+        for k in (0, *selected):
+            path = oxts_dir / f"{k:010d}.txt"
+            fields = path.read_text().split() if path.is_file() else []
+            if len(fields) != _OXTS_FIELDS or not all(_is_number(f) for f in fields):
+                raise DatasetError(
+                    f"{path}: expected one line of {_OXTS_FIELDS} numbers, got {len(fields)} fields (frame {k})"
+                ) from None
+        stamps = oxts_dir.parent / "timestamps.txt"
+        raise DatasetError(f"{stamps} or {oxts_dir}: pykitti cannot read drive {number}: {exc}") from None
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _raw_gt(data, T_cam0_cam: np.ndarray) -> np.ndarray:
+    """(len,4,4) T_world_cam with world = cam0 of frame 0, from pykitti's oxts T_w_imu (index 0 is frame 0)."""
+    T_imu_cam0 = se3.inv(np.asarray(data.calib.T_cam0_imu, dtype=np.float64))
+    T_w_cam0 = np.stack([np.asarray(o.T_w_imu) @ T_imu_cam0 for o in data.oxts])
+    return se3.inv(T_w_cam0[0]) @ T_w_cam0[1:] @ T_cam0_cam
+

@@ -1,0 +1,152 @@
+"""Sequence name -> dataset: the layout is told from the name and checked against the root.
+
+`04` (two digits) is a KITTI odometry sequence under `root/sequences/04`; `2011_09_26_drive_0009` is a KITTI raw
+drive under `root/2011_09_26/2011_09_26_drive_0009_sync`. Other sources (the synthetic town) plug in with
+`register_layout` without touching this module. A sequence directory that exists under the root decides the
+layout whatever the name (`root/sequences/town` is KITTI odometry).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from plvo.data.dataset import Dataset, FrameSelection
+from plvo.data.kitti import RAW_DRIVE, KittiOdometry, KittiRaw
+from plvo.errors import DatasetError
+
+ROOT_ENV = "KITTI_ROOT"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One kind of dataset the registry can open.
+
+    matches(sequence) says whether a sequence name is of this kind; locate(root, sequence) lists the candidate
+    (base root, directory that must exist) pairs for any name, first existing one wins; open(base_root, sequence, frames,
+    camera) builds the dataset. A layout with needs_root=False (e.g. a generated sequence) is opened with the root
+    as given, possibly None, and without locate.
+    """
+
+    name: str
+    description: str
+    matches: Callable[[str], bool]
+    open: Callable[[Path | None, str, FrameSelection, int], Dataset]
+    locate: Callable[[Path, str], list[tuple[Path, Path]]] | None = None
+    needs_root: bool = True
+
+
+def _locate_odometry(root: Path, sequence: str) -> list[tuple[Path, Path]]:
+    found = [(root, root / "sequences" / sequence)]
+    if root.name == "sequences":  # root given one level too deep
+        found.append((root.parent, root / sequence))
+    return found
+
+
+def _locate_raw(root: Path, drive: str) -> list[tuple[Path, Path]]:
+    match = RAW_DRIVE.match(drive)
+    if match is None:
+        return []
+    date, number = match.group(1), match.group(2)
+    found = [(root, root / date / f"{date}_drive_{number}_sync")]
+    if root.name == date:  # root given at the date level
+        found.append((root.parent, root / f"{date}_drive_{number}_sync"))
+    return found
+
+
+_LAYOUTS: list[Layout] = [
+    Layout(
+        name="kitti_odometry",
+        description="a KITTI odometry sequence like '04' (root/sequences/04)",
+        matches=lambda s: re.fullmatch(r"\d{2}", s) is not None,
+        open=lambda root, seq, frames, camera: KittiOdometry(root, seq, frames=frames, camera=camera),
+        locate=_locate_odometry,
+    ),
+    Layout(
+        name="kitti_raw",
+        description="a KITTI raw drive like '2011_09_26_drive_0009' (root/2011_09_26/2011_09_26_drive_0009_sync)",
+        matches=lambda s: RAW_DRIVE.match(s) is not None,
+        open=lambda root, seq, frames, camera: KittiRaw(root, seq, frames=frames, camera=camera),
+        locate=_locate_raw,
+    ),
+]
+
+
+def register_layout(layout: Layout, first: bool = True) -> None:
+    """Add a dataset kind (e.g. the synthetic town); `first` makes it take precedence over the KITTI layouts."""
+    global _LAYOUTS
+    others = [existing for existing in _LAYOUTS if existing.name != layout.name]
+    _LAYOUTS = [layout, *others] if first else [*others, layout]
+
+
+def layouts() -> tuple[Layout, ...]:
+    return tuple(_LAYOUTS)
+
+
+def _resolve_root(root: Path | str | None, sequence: str, layout: Layout | None) -> Path:
+    what = f"{layout.name} {sequence!r}" if layout else f"sequence {sequence!r}"
+    if root is None:
+        env = os.environ.get(ROOT_ENV)
+        if not env:
+            raise DatasetError(f"{what}: no dataset root given and ${ROOT_ENV} is not set")
+        root = env
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise DatasetError(f"dataset root {root}: no such directory (looking for {what})")
+    return root
+
+
+def open_dataset(
+    root: Path | str | None, sequence: str, frames: FrameSelection = None, camera: int = 0
+) -> Dataset:
+    """Open `sequence` under `root` (or $KITTI_ROOT when root is None), the layout told from the name and root.
+
+    A layout whose directory for the sequence exists under the root wins (so `root/sequences/town` opens as
+    KITTI odometry although `town` is not two digits); otherwise the name's form decides what was looked for.
+    """
+    sequence = str(sequence).strip()
+    by_name = [lay for lay in _LAYOUTS if lay.matches(sequence)]
+    for layout in by_name:
+        if not layout.needs_root:
+            return layout.open(None if root is None else Path(root), sequence, frames, camera)
+    base = _resolve_root(root, sequence, by_name[0] if by_name else None)
+    looked: list[Path] = []
+    for layout in _LAYOUTS:
+        if layout.locate is None:
+            continue
+        for base_root, directory in layout.locate(base, sequence):
+            if directory.is_dir():
+                return layout.open(base_root, sequence, frames, camera)
+            if layout in by_name:
+                looked.append(directory)
+    if not by_name:
+        known = "; ".join(lay.description for lay in _LAYOUTS)
+        raise DatasetError(f"sequence {sequence!r}: not found under {base} and of no known form, expected {known}")
+    raise DatasetError(f"{by_name[0].name} {sequence!r} not found: looked for {', '.join(map(str, looked))}")
+
+
+def parse_frames(text: str) -> slice:
+    """'A:B' (also 'A:', ':B', 'A:B:S') -> slice of frame numbers, B exclusive; errors name the bad part."""
+    parts = text.strip().split(":")
+    if len(parts) not in (2, 3):
+        raise DatasetError(f"frames {text!r}: expected A:B (first frame, end frame exclusive), e.g. 0:50")
+    values: list[int | None] = []
+    for name, part in zip(("start", "end", "step"), parts):
+        part = part.strip()
+        if not part:
+            values.append(None)
+            continue
+        try:
+            value = int(part)
+        except ValueError:
+            raise DatasetError(f"frames {text!r}: {name} {part!r} is not an integer") from None
+        if value < 0 or (name == "step" and value == 0):
+            raise DatasetError(f"frames {text!r}: {name} must be {'> 0' if name == 'step' else '>= 0'}")
+        values.append(value)
+    start, stop = values[0], values[1]
+    if start is not None and stop is not None and stop <= start:
+        raise DatasetError(f"frames {text!r}: end {stop} must be greater than start {start}")
+    return slice(*values)

@@ -1,0 +1,381 @@
+"""KITTI loaders: real seq-04 frames with their calibration, fake odometry and raw layouts, bad-data errors."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import plvo.data.kitti as kitti_module
+from plvo.data.dataset import Dataset, iter_frames
+from plvo.data.kitti import KittiOdometry, KittiRaw
+from plvo.data.registry import open_dataset, parse_frames
+from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
+from plvo.errors import CalibrationError, DatasetError
+from plvo.geometry import se3
+from plvo.geometry.camera import in_image, project
+
+FX, CX, CY, BASELINE = 100.0, 20.0, 10.0, 0.5
+W, H = 40, 20
+# velodyne (x fwd, y left, z up) -> camera (x right, y down, z fwd)
+R_CAM_VELO = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+def _row(values) -> str:
+    return " ".join(f"{v:.12e}" for v in np.asarray(values, dtype=float).reshape(-1))
+
+
+def _P(tx: float) -> np.ndarray:
+    return np.array([[FX, 0, CX, tx], [0, FX, CY, 0], [0, 0, 1, 0]])
+
+
+def make_odometry(root: Path, n: int = 5, seq: str = "07", with_tr: bool = True, cameras=(0, 1, 2)) -> Path:
+    """A tiny KITTI odometry sequence: n frames of W x H images, 100-point scans, poses moving 1 m along z."""
+    seq_dir = root / "sequences" / seq
+    T_velo = se3.from_rt(R_CAM_VELO, [0.0, -0.08, -0.27])
+    calib = [f"P{c}: {_row(_P(-FX * BASELINE if c in (1, 3) else 0.0))}" for c in range(4)]
+    if with_tr:
+        calib.append(f"Tr: {_row(T_velo[:3])}")
+    seq_dir.mkdir(parents=True)
+    (seq_dir / "calib.txt").write_text("\n".join(calib) + "\n")
+    (seq_dir / "times.txt").write_text("".join(f"{0.1 * k:.6e}\n" for k in range(n + 3)))
+    rng = np.random.default_rng(0)
+    for c in cameras:
+        (seq_dir / f"image_{c}").mkdir()
+    (seq_dir / "velodyne").mkdir()
+    for k in range(n):
+        for c in cameras:
+            img = np.full((H, W, 3) if c >= 2 else (H, W), 10 * k + c, np.uint8)
+            cv2.imwrite(str(seq_dir / f"image_{c}" / f"{k:06d}.png"), img)
+        rng.normal(0, 5, (100, 4)).astype(np.float32).tofile(seq_dir / "velodyne" / f"{k:06d}.bin")
+    poses = np.stack([se3.from_rt(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n + 3)])
+    write_kitti_poses(root / "poses" / f"{seq}.txt", poses)
+    return seq_dir
+
+
+# ---------------------------------------------------------------- real data
+
+
+def test_real_seq04_loads_with_kitti_calibration(kitti_root):
+    ds = open_dataset(kitti_root, "04")
+    assert isinstance(ds, Dataset) and isinstance(ds, KittiOdometry)
+    assert len(ds) == 51 and ds.frame_indices == tuple(range(51))
+    assert (ds.calib.width, ds.calib.height) == (1226, 370)
+    np.testing.assert_allclose(ds.calib.K, [[707.0912, 0, 601.8873], [0, 707.0912, 183.1104], [0, 0, 1]])
+    np.testing.assert_array_equal(ds.calib.T_cam0_cam, np.eye(4))
+    np.testing.assert_allclose(ds.calib.T_cam_velo[0, :], [-1.857739385241e-03, -9.999659513510e-01,
+                                                          -8.039975204516e-03, -4.784029760483e-03])
+    frame = ds[20]
+    assert frame.index == 20 and frame.image.shape == (370, 1226) and frame.image.dtype == np.uint8
+    assert frame.scan.ndim == 2 and frame.scan.shape[1] == 4 and frame.scan.dtype == np.float32
+    assert len(frame.scan) > 100_000
+    line21 = (kitti_root / "sequences" / "04" / "times.txt").read_text().splitlines()[20]
+    assert frame.time == pytest.approx(float(line21), abs=1e-9)
+
+
+def test_real_scan_projects_into_the_image(kitti_root):
+    """Forward lidar points land inside the image with positive depth; rear points are behind the camera."""
+    ds = open_dataset(kitti_root, "04", frames=slice(0, 1))
+    frame = ds[0]
+    xyz = frame.scan[:, :3].astype(np.float64)
+    rng_xy = np.hypot(xyz[:, 0], xyz[:, 1])
+    azimuth = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    elevation = np.degrees(np.arctan2(xyz[:, 2], rng_xy))
+    # well inside the camera's field of view (about +-40 deg horizontally, +-14 deg vertically)
+    forward = (xyz[:, 0] > 5.0) & (np.abs(azimuth) < 30.0) & (np.abs(elevation) < 8.0)
+    assert forward.sum() > 5000, forward.sum()
+    pts_cam = se3.transform_points(frame.calib.T_cam_velo, xyz)
+    uv, depth = project(frame.calib.K, pts_cam[forward])
+    inside = in_image(uv, frame.calib.width, frame.calib.height) & (depth > 0)
+    assert inside.mean() > 0.99, inside.mean()
+    # depth along the optical axis is close to the lidar's forward distance (the frames are 0.27 m apart)
+    np.testing.assert_allclose(depth, xyz[forward, 0] - 0.27, atol=0.5)
+    rear = xyz[:, 0] < -5.0
+    assert rear.sum() > 1000 and np.all(pts_cam[rear, 2] < 0)
+
+
+def test_real_frame_range_ground_truth_and_times(kitti_root):
+    ds = open_dataset(kitti_root, "04", frames=parse_frames("10:20"))
+    assert ds.frame_indices == tuple(range(10, 20)) and len(ds) == 10
+    poses = read_kitti_poses(kitti_root / "poses" / "04.txt")
+    np.testing.assert_allclose(ds.gt_T_world_cam, poses[10:20])
+    times = np.loadtxt(kitti_root / "sequences" / "04" / "times.txt")
+    np.testing.assert_allclose(ds.times, times[10:20])
+    frame = ds[3]
+    assert frame.index == 13 and frame.time == pytest.approx(times[13])
+    np.testing.assert_allclose(frame.gt_T_world_cam, poses[13])
+    assert ds[-1].index == 19
+    with pytest.raises(IndexError):
+        ds[10]
+    assert [f.index for f in iter_frames(open_dataset(kitti_root, "04", frames=range(48, 51)))] == [48, 49, 50]
+
+
+def test_real_out_of_range_and_missing_camera(kitti_root):
+    with pytest.raises(DatasetError, match=r"frames 40:60: out of range.*0\.\.50"):
+        open_dataset(kitti_root, "04", frames=slice(40, 60))
+    with pytest.raises(DatasetError, match=r"frame 51 out of range"):
+        open_dataset(kitti_root, "04", frames=range(49, 52))
+    with pytest.raises(DatasetError, match=r"image_1: no images"):
+        open_dataset(kitti_root, "04", camera=1)
+
+
+def test_images_and_scans_are_read_lazily(kitti_root, monkeypatch):
+    calls = []
+    real_image, real_scan = kitti_module.kitti_utils.load_image, kitti_module.kitti_utils.load_velo_scan
+    monkeypatch.setattr(kitti_module.kitti_utils, "load_image", lambda *a, **k: calls.append(a) or real_image(*a, **k))
+    monkeypatch.setattr(kitti_module.kitti_utils, "load_velo_scan", lambda *a: calls.append(a) or real_scan(*a))
+    ds = open_dataset(kitti_root, "04")
+    assert calls == []
+    ds[5]
+    assert [Path(c[0]).name for c in calls] == ["000005.png", "000005.bin"]
+
+
+# ---------------------------------------------------------------- registry
+
+
+def test_registry_tells_layout_and_uses_env(tmp_path, monkeypatch):
+    make_odometry(tmp_path)
+    monkeypatch.setenv("KITTI_ROOT", str(tmp_path))
+    ds = open_dataset(None, "07")
+    assert ds.name == "kitti_odometry" and ds.sequence == "07" and len(ds) == 5
+    assert len(open_dataset(tmp_path / "sequences", "07")) == 5  # root one level too deep is accepted
+    monkeypatch.delenv("KITTI_ROOT")
+    with pytest.raises(DatasetError, match=r"\$KITTI_ROOT is not set"):
+        open_dataset(None, "07")
+    with pytest.raises(DatasetError, match=r"kitti_odometry '09' not found: looked for .*sequences/09"):
+        open_dataset(tmp_path, "09")
+    with pytest.raises(DatasetError, match=r"kitti_raw '2011_09_26_drive_0009' not found: looked for "
+                                           r".*2011_09_26/2011_09_26_drive_0009_sync"):
+        open_dataset(tmp_path, "2011_09_26_drive_0009")
+    with pytest.raises(DatasetError, match=r"'town': not found under .* of no known form, expected .*'04'.*"
+                                           r"2011_09_26_drive_0009"):
+        open_dataset(tmp_path, "town")
+    make_odometry(tmp_path / "named", seq="town")  # a sequence directory under the root decides the layout
+    assert open_dataset(tmp_path / "named", "town").name == "kitti_odometry"
+    with pytest.raises(DatasetError, match=r"no such directory"):
+        open_dataset(tmp_path / "absent", "07")
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("0:50", slice(0, 50)), ("10:", slice(10, None)), (":5", slice(None, 5)), ("0:50:2", slice(0, 50, 2))],
+)
+def test_parse_frames(text, expected):
+    assert parse_frames(text) == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [("5", "expected A:B"), ("a:5", "start 'a' is not an integer"), ("5:5", "end 5 must be greater"),
+     ("-1:5", "start must be >= 0"), ("0:5:0", "step must be > 0"), ("1:2:3:4", "expected A:B")],
+)
+def test_parse_frames_errors(text, message):
+    with pytest.raises(DatasetError, match=message):
+        parse_frames(text)
+
+
+# ---------------------------------------------------------------- fake odometry: cameras and bad data
+
+
+def test_fake_odometry_cameras(tmp_path):
+    make_odometry(tmp_path)
+    left, right, colour = (KittiOdometry(tmp_path, "07", camera=c) for c in (0, 1, 2))
+    assert (left.calib.width, left.calib.height) == (W, H)
+    assert int(left[3].image[0, 0]) == 30 and int(right[3].image[0, 0]) == 31 and int(colour[3].image[0, 0]) == 32
+    assert colour[3].image.shape == (H, W)  # colour converted to gray
+    # cam1 sits BASELINE to the right of cam0: T_cam0_cam1 translates by +BASELINE along x
+    np.testing.assert_allclose(right.calib.T_cam0_cam, se3.from_rt(np.eye(3), [BASELINE, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(right.calib.T_cam_velo, se3.from_rt(np.eye(3), [-BASELINE, 0, 0])
+                               @ left.calib.T_cam_velo, atol=1e-12)
+    np.testing.assert_allclose(right.gt_T_world_cam[2, :3, 3], [BASELINE, 0.0, 2.0], atol=1e-12)
+    np.testing.assert_allclose(left.gt_T_world_cam[2, :3, 3], [0.0, 0.0, 2.0], atol=1e-12)
+
+
+def test_no_ground_truth_when_poses_file_absent(tmp_path):
+    make_odometry(tmp_path)
+    (tmp_path / "poses" / "07.txt").unlink()
+    ds = KittiOdometry(tmp_path, "07")
+    assert ds.gt_T_world_cam is None and ds[0].gt_T_world_cam is None
+
+
+def test_missing_tr_names_calib_file(tmp_path):
+    make_odometry(tmp_path, with_tr=False)
+    with pytest.raises(CalibrationError, match=r"sequences/07/calib\.txt: no 'Tr' matrix"):
+        KittiOdometry(tmp_path, "07")
+
+
+def test_scan_size_not_multiple_of_16(tmp_path):
+    seq = make_odometry(tmp_path)
+    with open(seq / "velodyne" / "000003.bin", "ab") as f:
+        f.write(b"\0" * 8)
+    with pytest.raises(DatasetError, match=r"velodyne/000003\.bin: 1608 bytes is not a multiple of 16"):
+        KittiOdometry(tmp_path, "07")
+    assert len(KittiOdometry(tmp_path, "07", frames=slice(0, 3))) == 3  # the bad scan is not selected
+
+
+def test_missing_image_named(tmp_path):
+    seq = make_odometry(tmp_path)
+    (seq / "image_0" / "000002.png").unlink()
+    (seq / "velodyne" / "000002.bin").unlink()
+    with pytest.raises(DatasetError, match=r"image_0/000002\.png: missing image \(frame 2\)"):
+        KittiOdometry(tmp_path, "07")
+
+
+def test_mismatched_image_and_scan_counts(tmp_path):
+    seq = make_odometry(tmp_path)
+    (seq / "velodyne" / "000004.bin").unlink()
+    with pytest.raises(DatasetError, match=r"5 images in .*image_0 but 4 scans in .*velodyne: "
+                                           r".*velodyne/000004\.bin: missing scan \(frame 4\)"):
+        KittiOdometry(tmp_path, "07")
+
+
+def test_image_deleted_after_construction(tmp_path):
+    seq = make_odometry(tmp_path)
+    ds = KittiOdometry(tmp_path, "07")
+    (seq / "image_0" / "000001.png").unlink()
+    with pytest.raises(DatasetError, match=r"000001\.png: missing image \(frame 1\)"):
+        ds[1]
+
+
+def test_nan_in_scan_names_frame(tmp_path):
+    seq = make_odometry(tmp_path)
+    scan = np.fromfile(seq / "velodyne" / "000003.bin", dtype=np.float32).reshape(-1, 4)
+    scan[7, 1], scan[9, 3] = np.nan, np.inf
+    scan.tofile(seq / "velodyne" / "000003.bin")
+    ds = KittiOdometry(tmp_path, "07")
+    ds[2]
+    with pytest.raises(DatasetError, match=r"000003\.bin: 2 of 100 points have NaN or infinite values \(frame 3\)"):
+        ds[3]
+
+
+def test_image_size_contradicting_first_frame(tmp_path):
+    seq = make_odometry(tmp_path)
+    cv2.imwrite(str(seq / "image_0" / "000004.png"), np.zeros((H + 2, W), np.uint8))
+    ds = KittiOdometry(tmp_path, "07")
+    with pytest.raises(DatasetError, match=rf"000004\.png: image is {W}x{H + 2}, but the first frame's is {W}x{H}"):
+        ds[4]
+
+
+def test_short_times_and_poses_files(tmp_path):
+    seq = make_odometry(tmp_path)
+    (seq / "times.txt").write_text("0.0\n0.1\n")
+    with pytest.raises(DatasetError, match=r"times\.txt: 2 timestamps for 5 frames"):
+        KittiOdometry(tmp_path, "07")
+    seq = make_odometry(tmp_path / "b")
+    write_kitti_poses(tmp_path / "b" / "poses" / "07.txt", np.tile(np.eye(4), (3, 1, 1)))
+    with pytest.raises(DatasetError, match=r"07\.txt: 3 poses, but frame 4 is selected"):
+        KittiOdometry(tmp_path / "b", "07")
+    assert len(KittiOdometry(tmp_path / "b", "07", frames=slice(0, 3))) == 3
+
+
+def test_bad_camera_rejected(tmp_path):
+    make_odometry(tmp_path)
+    with pytest.raises(DatasetError, match="camera 5"):
+        KittiOdometry(tmp_path, "07", camera=5)
+
+
+# ---------------------------------------------------------------- fake raw drive
+
+DATE, DRIVE = "2011_09_26", "0009"
+EARTH_RADIUS = 6378137.0
+LAT0, LON0, ALT0 = 49.0, 8.4, 110.0
+
+
+def _oxts_line(east: float, north: float, up: float, yaw: float) -> str:
+    """An oxts record at a metric offset from (LAT0, LON0, ALT0), inverting pykitti's Mercator projection."""
+    scale = math.cos(math.radians(LAT0))
+    lon = LON0 + east * 180.0 / (scale * math.pi * EARTH_RADIUS)
+    ty0 = scale * EARTH_RADIUS * math.log(math.tan(math.radians(90.0 + LAT0) / 2.0))
+    lat = math.degrees(2.0 * math.atan(math.exp((ty0 + north) / (scale * EARTH_RADIUS)))) - 90.0
+    values = [lat, lon, ALT0 + up, 0.0, 0.0, yaw] + [0.0] * 19 + [4, 10, 4, 4, 4]
+    return " ".join(repr(v) for v in values) + "\n"
+
+
+def make_raw(root: Path, motion) -> Path:
+    """A tiny raw drive; motion = [(east, north, up, yaw), ...] of the IMU, one per frame."""
+    date_dir = root / DATE
+    drive_dir = date_dir / f"{DATE}_drive_{DRIVE}_sync"
+    date_dir.mkdir(parents=True)
+    (date_dir / "calib_imu_to_velo.txt").write_text(f"calib_time: 25-May-2012\nR: {_row(np.eye(3))}\nT: 0 0 0\n")
+    (date_dir / "calib_velo_to_cam.txt").write_text(f"calib_time: x\nR: {_row(R_CAM_VELO)}\nT: 0 0 0\n")
+    cam = [f"P_rect_0{c}: {_row(_P(-FX * BASELINE if c == 1 else 0.0))}\nR_rect_0{c}: {_row(np.eye(3))}"
+           for c in range(4)]
+    (date_dir / "calib_cam_to_cam.txt").write_text("calib_time: 09-Jan-2012 13:57:47\n" + "\n".join(cam) + "\n")
+    for sub in ("image_00/data", "velodyne_points/data", "oxts/data"):
+        (drive_dir / sub).mkdir(parents=True)
+    stamps = []
+    for k, (east, north, up, yaw) in enumerate(motion):
+        cv2.imwrite(str(drive_dir / "image_00" / "data" / f"{k:010d}.png"), np.full((H, W), k, np.uint8))
+        np.ones((10, 4), np.float32).tofile(drive_dir / "velodyne_points" / "data" / f"{k:010d}.bin")
+        (drive_dir / "oxts" / "data" / f"{k:010d}.txt").write_text(_oxts_line(east, north, up, yaw))
+        stamps.append(f"2011-09-26 13:02:{25 + k // 10:02d}.{(k % 10) * 100_000_000 + 123:09d}\n")
+    (drive_dir / "oxts" / "timestamps.txt").write_text("".join(stamps))
+    return drive_dir
+
+
+MOTION = [(0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0), (2.0, 3.0, 0.5, math.pi / 2), (2.0, 5.0, 0.5, math.pi / 2)]
+
+
+def test_raw_drive_ground_truth_from_oxts(tmp_path):
+    make_raw(tmp_path, MOTION)
+    ds = open_dataset(tmp_path, f"{DATE}_drive_{DRIVE}")
+    assert isinstance(ds, KittiRaw) and ds.name == "kitti_raw" and ds.sequence == f"{DATE}_drive_{DRIVE}"
+    assert len(ds) == 4 and (ds.calib.width, ds.calib.height) == (W, H)
+    np.testing.assert_allclose(ds.calib.T_cam_velo[:3, :3], R_CAM_VELO, atol=1e-12)
+    np.testing.assert_allclose(ds.times, [0.0, 0.1, 0.2, 0.3], atol=1e-6)
+    gt = ds.gt_T_world_cam
+    # at frame 0 the IMU looks east; camera of frame 0: x = south, y = down, z = east
+    np.testing.assert_allclose(gt[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(gt[1, :3, 3], [0.0, 0.0, 2.0], atol=1e-6)
+    np.testing.assert_allclose(gt[1, :3, :3], np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(gt[2, :3, 3], [-3.0, -0.5, 2.0], atol=1e-6)  # 3 m north, 0.5 m up
+    np.testing.assert_allclose(gt[2, :3, 2], [-1.0, 0.0, 0.0], atol=1e-9)  # now looking north
+    np.testing.assert_allclose(gt[3, :3, 3], [-5.0, -0.5, 2.0], atol=1e-6)
+    frame = ds[2]
+    assert frame.index == 2 and int(frame.image[0, 0]) == 2 and frame.scan.shape == (10, 4)
+
+
+def test_raw_frame_range_keeps_frame0_as_world(tmp_path):
+    make_raw(tmp_path, MOTION)
+    full = KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+    part = KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}_sync", frames=slice(2, 4))
+    assert part.frame_indices == (2, 3)
+    np.testing.assert_allclose(part.gt_T_world_cam, full.gt_T_world_cam[2:], atol=1e-9)
+    np.testing.assert_allclose(part.times, [0.2, 0.3], atol=1e-6)
+
+
+def test_raw_bad_data(tmp_path):
+    drive = make_raw(tmp_path, MOTION)
+    (drive / "oxts" / "data" / "0000000003.txt").unlink()
+    with pytest.raises(DatasetError, match=r"oxts/data/0000000003\.txt: missing oxts record \(frame 3\)"):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+    (drive / "oxts" / "data" / "0000000003.txt").write_text("1 2 3\n")
+    with pytest.raises(DatasetError, match=r"0000000003\.txt: expected one line of 30 numbers, got 3"):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+    (tmp_path / DATE / "calib_velo_to_cam.txt").write_text("R: 1 0 0 0 1 0 0 0 1\n")
+    with pytest.raises(CalibrationError, match=r"calib_velo_to_cam\.txt: no 'T' matrix"):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+
+
+def test_registry_hook_for_other_layouts(tmp_path, monkeypatch):
+    """A layout registered later (e.g. the synthetic town) is found first and may need no root."""
+    import plvo.data.registry as registry
+
+    monkeypatch.setattr(registry, "_LAYOUTS", list(registry._LAYOUTS))
+    monkeypatch.delenv("KITTI_ROOT", raising=False)
+    make_odometry(tmp_path)
+    opened = []
+
+    def open_town(root, seq, frames, camera):
+        opened.append((root, seq, frames, camera))
+        return KittiOdometry(tmp_path, "07", frames=frames, camera=camera)
+
+    registry.register_layout(registry.Layout(
+        name="synthetic", description="'town' (the synthetic town)", matches=lambda s: s == "town",
+        open=open_town, needs_root=False))
+    ds = open_dataset(None, "town", frames=slice(1, 3))
+    assert opened == [(None, "town", slice(1, 3), 0)] and ds.frame_indices == (1, 2)
+    assert [lay.name for lay in registry.layouts()] == ["synthetic", "kitti_odometry", "kitti_raw"]
