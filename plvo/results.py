@@ -1,0 +1,119 @@
+"""Stage results of tracking, keyframing, back end and loop closing, as the System hands them to recorders.
+
+Each is a frozen dataclass holding numpy arrays (treat them as read-only), tagged with the frame it belongs to.
+Front-end results (FeatureSet, FeatureMatches, DepthPriors) live in `plvo.types`. Poses are `T_world_cam` of the
+chosen camera, world = cam0 of the first frame; 3D positions are (N,3) in the world frame, metres.
+The stage engineers fill these; the recorders only read the fields documented here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# GraphResult.edge_kind values
+EDGE_ODOMETRY = 0  # consecutive keyframes: VO relative pose / lidar registration
+EDGE_COVISIBILITY = 1  # keyframes sharing landmarks in the local window
+EDGE_LOOP = 2  # accepted loop closure
+EDGE_KINDS = {EDGE_ODOMETRY: "odometry", EDGE_COVISIBILITY: "covisibility", EDGE_LOOP: "loop"}
+
+
+def _empty(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
+    return np.zeros(shape, dtype=dtype)
+
+
+@dataclass(frozen=True)
+class TrackingResult:
+    """The tracker's answer for one frame.
+
+    T_world_cam: (4,4) estimated pose. point_inliers / line_inliers: indices into this frame's FeatureSet keypoints
+    / segments that were tracked and kept by PnP/PnL. ok: False when tracking was lost (then T_world_cam is the
+    motion-model prediction). message: a short human-readable decision, e.g. "keyframe: 52 tracked < 60".
+    """
+
+    frame_index: int
+    T_world_cam: np.ndarray
+    n_point_matches: int = 0
+    n_line_matches: int = 0
+    point_inliers: np.ndarray = field(default_factory=lambda: _empty((0,), int))
+    line_inliers: np.ndarray = field(default_factory=lambda: _empty((0,), int))
+    is_keyframe: bool = False
+    ok: bool = True
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class KeyframeResult:
+    """A frame became a keyframe. T_world_cam: (4,4) its pose, or None while no odometry estimates poses."""
+
+    frame_index: int
+    keyframe_id: int
+    T_world_cam: np.ndarray | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class GraphResult:
+    """The keyframe graph after a back-end (or loop) optimisation.
+
+    keyframe_ids: (K,) int; T_world_cam: (K,4,4) their optimised poses. edges: (E,2) int indices into keyframe_ids;
+    edge_kind: (E,) int (EDGE_*); zeta: (E,) alignment-quality information weight of each edge (>= 0, larger is more
+    trusted; NaN where the edge has none). scale: scale correction applied at this step (1.0 when none).
+    """
+
+    frame_index: int
+    keyframe_ids: np.ndarray
+    T_world_cam: np.ndarray
+    edges: np.ndarray = field(default_factory=lambda: _empty((0, 2), int))
+    edge_kind: np.ndarray = field(default_factory=lambda: _empty((0,), int))
+    zeta: np.ndarray = field(default_factory=lambda: _empty((0,)))
+    scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class MapResult:
+    """The landmark map after bundle adjustment. points: (N,3), lines: (M,2,3) endpoints, both in the world frame."""
+
+    frame_index: int
+    points: np.ndarray
+    lines: np.ndarray = field(default_factory=lambda: _empty((0, 2, 3)))
+
+
+@dataclass(frozen=True)
+class LoopResult:
+    """A loop candidate and the verdict on it.
+
+    query_keyframe / match_keyframe: keyframe ids; score: bag-of-words similarity; n_inliers: geometric inliers;
+    T_match_query: (4,4) relative pose when verified, else None; reason: why accepted or rejected.
+    """
+
+    frame_index: int
+    query_keyframe: int
+    match_keyframe: int
+    accepted: bool
+    score: float = float("nan")
+    n_inliers: int = 0
+    T_match_query: np.ndarray | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class TimingResult:
+    """Wall time of each stage that ran for this frame, seconds, by stage name (e.g. "features", "depth")."""
+
+    frame_index: int
+    seconds: Mapping[str, float]
+
+    @property
+    def total(self) -> float:
+        return float(sum(self.seconds.values()))
+
+
+@dataclass(frozen=True)
+class MetricsResult:
+    """Any other per-frame numbers worth plotting, by name (e.g. "scale_factor", "ndt_fitness")."""
+
+    frame_index: int
+    values: Mapping[str, float]

@@ -1,0 +1,66 @@
+"""Inspect a saved .rrd recording in the viser web viewer (or the Rerun web viewer) without rerunning the pipeline."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from plvo.errors import RecordingError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", type=Path, metavar="FILE.rrd", help="a recording written by plvo-viz")
+    p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
+    p.add_argument("--rerun-web", type=int, default=None, metavar="PORT",
+                   help="serve the recording in Rerun's web viewer on this port instead (gRPC on PORT+1)")
+
+
+def view(path: Path, port: int = 8080, serve: bool = True) -> int:
+    """Load `path` into the viser viewer and serve it until Ctrl-C (serve=False: load, report and return)."""
+    from plvo_app.viser_viewer import ViserViewer, load_rrd
+
+    store = load_rrd(path)
+    if not store.frames:
+        raise RecordingError(f"{path}: the recording holds no frames")
+    print(f"{path}: {len(store.frames)} frames ({store.frames[0]}..{store.frames[-1]})", file=sys.stderr)
+    if not serve:
+        return 0
+    viewer = ViserViewer(store, port=port)
+    print(f"viser viewer: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0
+
+
+def serve_rerun_web(path: Path, web_port: int) -> int:
+    """Serve `path` to Rerun's web viewer: gRPC on web_port + 1, the viewer page on web_port."""
+    import rerun as rr
+
+    from plvo_app.rerun_recorder import blueprint
+
+    if not path.is_file():
+        raise RecordingError(f"{path}: no such recording file")
+    rec = rr.RecordingStream("plvo", recording_id=path.stem)
+    uri = rr.serve_grpc(grpc_port=web_port + 1, default_blueprint=blueprint(), recording=rec)
+    rec.log_file_from_path(path)
+    rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
+    print(f"Rerun web viewer: http://127.0.0.1:{web_port}/?url={uri} - Ctrl-C to quit", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.rerun_web is not None:
+        return serve_rerun_web(args.file, args.rerun_web)
+    return view(args.file, port=args.port)

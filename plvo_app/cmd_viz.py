@@ -1,0 +1,208 @@
+"""Run the pipeline on a sequence, streaming every stage to a Rerun recording and a viser web viewer.
+
+Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and results/<seq>_<time>/ with poses.txt
+(KITTI format, only when odometry ran to the end), config.toml (the resolved config) and timings.json.
+Ctrl-C stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json likewise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plvo.atomic import write_text_atomic
+from plvo.config import SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
+from plvo.errors import DatasetError, RecordingError
+from plvo.recording import FanOut, RunInfo
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout); default $KITTI_ROOT, "
+                   "else the embedded synthetic town")
+    p.add_argument("--seq", default=None, help="odometry sequence (04) or raw drive (2011_09_26_drive_0009); "
+                   "default 00 with a root")
+    p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
+    p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
+    p.add_argument("--ablation", default=None, help="full, no_depth_priors, no_scale_correction or points_only")
+    p.add_argument("--rrd", type=Path, help="recording path; default recordings/<seq>_<time>.rrd")
+    p.add_argument("--out", type=Path, help="results folder; default results/<seq>_<time>/")
+    p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
+    p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
+    p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
+
+
+def git_revision() -> str:
+    """The git revision of the plvo checkout ('+dirty' with local changes), or 'unknown' when not in git."""
+    repo = Path(__file__).resolve().parents[1]
+    try:
+        rev = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
+                             text=True, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return rev + ("+dirty" if dirty else "")
+
+
+def plvo_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("plvo")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _resolve_config(args: argparse.Namespace) -> SystemConfig:
+    cfg = load_config(args.config)
+    return with_ablation(cfg, args.ablation) if args.ablation else cfg
+
+
+def _open(args: argparse.Namespace):
+    """The dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town when no dataset is given."""
+    from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
+
+    frames = parse_frames(args.frames) if args.frames else None
+    if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
+        try:
+            from plvo.data.synth import default_sequence_root
+        except ImportError:
+            raise DatasetError(f"no dataset: give --root DIR or set ${ROOT_ENV} (the synthetic town is not "
+                               "available in this build)") from None
+        root = Path(default_sequence_root())
+        seq = sorted(p.name for p in (root / "sequences").iterdir())[0]
+        return open_dataset(root, seq, frames)
+    return open_dataset(args.root, args.seq or "00", frames)
+
+
+def _unique(path: Path) -> Path:
+    """`path`, or path with -2, -3... appended to its stem when taken."""
+    candidate, n = path, 2
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
+        n += 1
+    return candidate
+
+
+@dataclass(frozen=True)
+class Outputs:
+    run: str
+    rrd: Path
+    out: Path
+
+
+def _outputs(args: argparse.Namespace, sequence: str) -> Outputs:
+    run = f"{sequence}_{time.strftime('%Y%m%d-%H%M%S')}"
+    if args.rrd is not None and args.rrd.exists():
+        raise RecordingError(f"{args.rrd}: already exists; plvo-viz never overwrites a recording")
+    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+        raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
+    rrd = args.rrd or _unique(Path("recordings") / f"{run}.rrd")
+    out = args.out or _unique(Path("results") / run)
+    return Outputs(rrd.stem if args.rrd else run, rrd, out)
+
+
+def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float, dataset) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.toml")
+    timings = {"status": status, "frames_done": system.frames_done, "frames_total": len(dataset),
+               "frames_per_second": fps, "stages": system.timing_summary(),
+               "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
+    write_text_atomic(out / "timings.json", json.dumps(timings, indent=1) + "\n")
+    if status == "complete" and system.has_odometry:
+        from plvo.data.trajectory import write_kitti_poses
+        from plvo.geometry.se3 import inv
+
+        T_cam_cam0 = inv(dataset.calib.T_cam0_cam)
+        poses = np.array([system.poses[f] @ T_cam_cam0 for f in dataset.frame_indices])
+        write_kitti_poses(out / "poses.txt", poses)
+
+
+def _run_frames(system, dataset) -> float:
+    """Step through the dataset with a progress bar; returns frames a second. Ctrl-C propagates."""
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
+        for i in range(len(dataset)):
+            system.step(dataset[i])
+            bar.update(1)
+    return system.frames_done / max(time.perf_counter() - t0, 1e-9)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.replay is not None:
+        from plvo_app.cmd_view import view
+
+        return view(args.replay, port=args.port, serve=not args.no_serve)
+    from plvo.system import System
+    from plvo_app.rerun_recorder import RerunRecorder
+
+    cfg = _resolve_config(args)
+    dataset = _open(args)
+    outs = _outputs(args, dataset.sequence)
+    from plvo.system import default_stages
+
+    stages = default_stages()
+    info = RunInfo(
+        name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
+        gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
+        git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
+        extra={"config_toml": config_to_toml(cfg), "has_odometry": stages.tracker is not None})
+    recorders, viewer = [RerunRecorder(outs.rrd)], None
+    if not args.no_serve:
+        from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
+
+        viewer = ViserViewer(SceneStore(), port=args.port, live=True)
+        recorders.append(ViserRecorder(viewer))
+        print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
+    system = System(cfg, FanOut(recorders), stages)
+    system.start(info)
+    status, fps = "interrupted", 0.0
+    try:
+        fps = _run_frames(system, dataset)
+        status = "complete"
+    except KeyboardInterrupt:
+        print(f"interrupted after {system.frames_done} of {len(dataset)} frames; keeping what was recorded",
+              file=sys.stderr)
+    except BaseException:
+        status = "failed"
+        raise
+    finally:
+        recorders[0].set_status(status, system.frames_done)
+        system.close()
+        _write_results(outs.out, system, cfg, status, fps, dataset)
+    print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
+    if not system.has_odometry:
+        print("odometry is not implemented yet: no poses.txt written (the viewers place the camera at ground "
+              "truth)", file=sys.stderr)
+    if status != "complete":
+        if viewer is not None:
+            viewer.close()
+        return 130
+    if viewer is not None:
+        _serve_until_interrupted(viewer)
+    return 0
+
+
+def _serve_until_interrupted(viewer) -> None:
+    print(f"serving the run at http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()

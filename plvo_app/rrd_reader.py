@@ -1,0 +1,92 @@
+"""Read a .rrd back with rerun's chunk reader: per entity, the rows on the `frame` timeline, the static data and the
+recording properties. Used by the viser replay and the tests; works on recordings cut short by Ctrl-C.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rerun as rr
+
+from plvo.errors import RecordingError
+
+_SKIP = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
+
+
+@dataclass
+class RrdData:
+    """static: entity -> component -> value (a list, one item per instance batch).
+    temporal: entity -> frame -> component -> value, later rows of a frame overriding earlier ones.
+    sensor_time: frame -> seconds. properties: "group:name" -> value, e.g. "plvo:git_revision"."""
+
+    static: dict[str, dict[str, Any]] = field(default_factory=dict)
+    temporal: dict[str, dict[int, dict[str, Any]]] = field(default_factory=lambda: defaultdict(dict))
+    sensor_time: dict[int, float] = field(default_factory=dict)
+    properties: dict[str, Any] = field(default_factory=dict)
+
+    def frames(self, entity: str | None = None) -> list[int]:
+        """Sorted frame numbers with data (on `entity`, or on any entity)."""
+        if entity is not None:
+            return sorted(self.temporal.get(entity, {}))
+        return sorted({f for rows in self.temporal.values() for f in rows})
+
+    def rows(self, entity: str) -> Iterator[tuple[int, dict[str, Any]]]:
+        """(frame, components) of `entity` in frame order."""
+        rows = self.temporal.get(entity, {})
+        for f in sorted(rows):
+            yield f, rows[f]
+
+    @property
+    def entities(self) -> set[str]:
+        return set(self.static) | set(self.temporal)
+
+
+def read_rrd(path: str | Path) -> RrdData:
+    """Load every chunk of the first recording in `path`."""
+    p = Path(path)
+    if not p.is_file():
+        raise RecordingError(f"{p}: no such recording file")
+    try:
+        store = rr.chunk.RrdReader(p).stream().collect()
+    except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
+        raise RecordingError(f"{p}: not a readable Rerun recording ({exc})") from None
+    out = RrdData()
+    pending: list[tuple[bytes, str, int, dict[str, Any]]] = []  # (row id, entity, frame, components)
+    for chunk in store.stream():
+        batch = chunk.to_record_batch()
+        entity = chunk.entity_path
+        cols = {name: batch.column(name).to_pylist() for name in batch.schema.names if name not in _SKIP}
+        if entity.startswith("/__properties"):
+            group = entity.removeprefix("/__properties").strip("/") or "recording"
+            for name, values in cols.items():
+                value = values[-1]
+                out.properties[f"{group}:{name}"] = value[0] if isinstance(value, list) and len(value) == 1 else value
+            continue
+        if chunk.is_static:
+            target = out.static.setdefault(entity, {})
+            for name, values in cols.items():
+                if values[-1] is not None:
+                    target[name] = values[-1]
+            continue
+        if "frame" not in batch.schema.names:
+            continue
+        frames = batch.column("frame").to_pylist()
+        row_ids = batch.column("rerun.controls.RowId").to_pylist()
+        times = batch.column("sensor_time").to_pylist() if "sensor_time" in batch.schema.names else None
+        for i, f in enumerate(frames):
+            pending.append((row_ids[i], entity, int(f), {k: v[i] for k, v in cols.items() if v[i] is not None}))
+            if times is not None and times[i] is not None:
+                out.sensor_time[int(f)] = _seconds(times[i])
+    for _, entity, f, components in sorted(pending, key=lambda r: r[0]):  # row ids grow with logging order
+        out.temporal[entity].setdefault(f, {}).update(components)
+    return out
+
+
+def _seconds(value: Any) -> float:
+    if hasattr(value, "total_seconds"):
+        return float(value.total_seconds())
+    return float(value) * 1e-9

@@ -1,0 +1,123 @@
+"""The viser viewer in headless Chromium: it connects, draws the scene, and the frame slider and layer toggles moved
+in the page reach the server and change what is drawn. Also the live path (ViserRecorder) and replay (load_rrd)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app_fakes import drive, pose
+from plvo_app.rerun_recorder import RerunRecorder
+from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer, load_rrd
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+N = 9
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(cond, timeout: float = 20.0) -> bool:
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if cond():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.fixture(scope="module")
+def browser():
+    playwright = pytest.importorskip("playwright.sync_api")
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (scripts/setup.sh --test installs it)")
+    profile = tempfile.mkdtemp(prefix="plvo-chromium-")
+    with playwright.sync_playwright() as p:
+        ctx = p.chromium.launch_persistent_context(profile, executable_path=CHROMIUM, headless=True, args=ARGS,
+                                                   viewport={"width": 1280, "height": 720})
+        yield ctx
+        ctx.close()
+    shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def replay_viewer(tmp_path_factory):
+    path = tmp_path_factory.mktemp("view") / "fake.rrd"
+    rec = RerunRecorder(path)
+    drive(rec, N)
+    rec.close()
+    viewer = ViserViewer(load_rrd(path), port=_free_port())
+    yield viewer
+    viewer.close()
+
+
+def _scene_pixels(page, path: Path) -> np.ndarray:
+    import cv2
+
+    page.screenshot(path=str(path))
+    img = cv2.imread(str(path))
+    return img[150:700, 0:900]  # the 3D canvas, clear of the control panel and the WebGL notice
+
+
+def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay_viewer, tmp_path):
+    v = replay_viewer
+    page = browser.new_page()
+    page.goto(f"http://127.0.0.1:{v.port}")
+    page.wait_for_selector("canvas", timeout=30000)
+    assert _wait(lambda: len(v.server.get_clients()) == 1)
+    page.get_by_text("Connected").wait_for(timeout=20000)
+    time.sleep(3)  # let the scene arrive and render
+    first = _scene_pixels(page, tmp_path / "first.png")
+    drawn = np.any(first < 235, axis=2).mean()  # the background is white
+    assert drawn > 0.02, f"scene looks blank: {drawn:.3%} of the canvas drawn"
+    assert len(np.unique(first.reshape(-1, 3), axis=0)) > 50  # colours of scan, map, image, not a flat fill
+
+    slider = page.get_by_role("slider").first
+    assert slider.get_attribute("aria-valuenow") == "0" and v.shown_frame == 0
+    slider.focus()
+    for _ in range(6):
+        page.keyboard.press("ArrowRight")
+    assert _wait(lambda: v.slider.value == 6 and v.shown_frame == 6), (v.slider.value, v.shown_frame)
+    np.testing.assert_allclose(v._handles["camera"].position, pose(6)[:3, 3], atol=1e-4)
+    page.get_by_text("frame 6 (7/9)").wait_for(timeout=10000)
+    time.sleep(2)
+    moved = _scene_pixels(page, tmp_path / "moved.png")
+    assert np.abs(moved.astype(int) - first.astype(int)).max(axis=2).__gt__(30).mean() > 0.005
+
+    page.get_by_role("checkbox", name="scan").uncheck()
+    assert _wait(lambda: not v.toggles["scan"].value and "scan" not in v._handles)
+
+    page.get_by_role("button", name="Play").click()
+    assert _wait(lambda: v.playing and v.shown_frame != 6, timeout=10), "play did not move the frame"
+    page.get_by_role("button", name="Pause").click()
+    assert _wait(lambda: not v.playing)
+    page.close()
+
+
+def test_live_recorder_follows_the_run():
+    viewer = ViserViewer(SceneStore(), port=_free_port(), live=True)
+    try:
+        rec = ViserRecorder(viewer, min_interval_s=0.0)
+        drive(rec, N)
+        rec.close()
+        assert viewer.store.frames == list(range(N)) and viewer.shown_frame == N - 1
+        assert viewer.slider.max == N - 1 and viewer.slider.value == N - 1
+        assert {"scan", "map_points", "map_lines", "graph", "keyframes", "loops", "gt", "est", "camera"} <= set(
+            viewer._handles)
+        pts = viewer._handles["scan"].points
+        assert pts.dtype == np.float32  # float16 would quantise KITTI-scale positions
+        viewer.slider.value = 2  # the user goes back: following stops
+        assert viewer.shown_frame == 2 and not viewer.follow.value
+    finally:
+        viewer.close()
