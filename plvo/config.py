@@ -32,15 +32,19 @@ class OrbConfig:
 @dataclass(frozen=True)
 class LineConfig:
     min_length_px: float = 50.0  # paper, III: segments under 50 px are discarded
-    chain_endpoint_px: float = 8.0  # endpoints this close may be chained
+    chain_endpoint_px: float = 10.0  # endpoints this close may be chained
     chain_angle_deg: float = 3.0  # chained segments must be this collinear
     chain_offset_px: float = 1.5  # and lie this close to each other's supporting line
     merge_distance_px: float = 3.0  # near-parallel segments this close are merged (double edges)
     merge_angle_deg: float = 3.0
     merge_overlap: float = 0.5  # fraction of the shorter segment that must overlap the longer
     max_iterations: int = 10  # repeat chaining and merging until stable, at most this often
-    lsd_scale: float = 0.8
+    lsd_scale: float = 0.5  # LSD on the image downsampled by 2: 20-25 ms instead of 55-65 on KITTI frames
     max_lines: int = 300  # keep the longest segments when more are found
+    lsd_refine: bool = True  # OpenCV's LSD_REFINE_STD (else LSD_REFINE_NONE)
+    raw_min_length_px: float = 8.0  # raw LSD segments shorter than this take no part in the repair
+    min_anchor_px: float = 0.0  # a repaired segment's longest raw member must be at least this long
+    in_thread: bool = True  # run LSD + repair + LBD in a worker thread beside ORB
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,7 @@ class MatchingConfig:
     line_length_ratio: float = 0.1  # paper, III: length difference ratio 0.1
     line_midpoint_px: float = 5.0  # paper, III: midpoint distance 5 px (after the predicted motion)
     line_midpoint_px_unpredicted: float = 40.0  # window when no motion prediction is available
+    line_ratio: float = 1.0  # Lowe ratio among a line's geometric candidates (1.0: off, as in the paper)
 
 
 @dataclass(frozen=True)
@@ -69,8 +74,20 @@ class DepthConfig:
     max_depth_m: float = 80.0
     line_min_points: int = 6
     line_max_rms_m: float = 0.15
-    line_lm_iterations: int = 20
-    line_reprojection_weight: float = 1.0  # weight of the image-line term against point distances (1/px)
+    line_lm_iterations: int = 10
+    line_reprojection_weight: float = 0.1  # metres a pixel of reprojection error weighs against point distances
+    min_inlier_fraction: float = 0.6  # plane inliers must be this share of the segmented foreground
+    plane_max_flatness: float = 0.35  # sqrt(eig1/eig2) above this: tilt unknown, plane facing the camera
+    grid_cell_px: int = 8  # cell size of the projected-scan index
+    zbuffer_px: int = 1  # z-buffer block size: the nearest return of each block is kept
+    min_depth_m: float = 0.5  # projected returns nearer than this are dropped
+    line_max_points: int = 64  # band points kept a segment (evenly thinned), bounds the LM's cost
+    line_huber_m: float = 0.02  # Huber threshold on point-to-line distances (near the paper's sum of distances)
+    line_core_px: float = 2.0  # band points this close to the segment set each stretch's reference depth
+    line_inlier_m: float = 0.2  # band points farther from the fitted line are not counted
+    line_min_coverage: float = 0.3  # inliers must span this fraction of the segment
+    line_max_reproj_px: float = 2.0  # fitted line's RMS reprojection residual against the segment
+    min_ray_line_sin: float = 0.05  # end rays closer to parallel with the 3D line give no endpoints
 
 
 @dataclass(frozen=True)
@@ -86,6 +103,8 @@ class TrackingConfig:
     ransac_line_px: float = 2.0
     ransac_iterations: int = 1000
     outlier_reproj_px: float = 3.0
+    search_radius_px: float = 8.0  # landmarks of recent keyframes re-found this close to their projection
+    search_keyframes: int = 2  # how many recent keyframes' landmarks are searched for (0: previous frame only)
 
 
 @dataclass(frozen=True)
@@ -97,6 +116,12 @@ class RegistrationConfig:
     max_iterations: int = 30
     max_range_m: float = 60.0
     max_correspondence_m: float = 1.0
+    min_range_m: float = 2.0  # drop returns from the car itself
+    ndt_coarse_resolution_m: float = 3.0  # a first NDT pass at this resolution widens the basin; 0 disables
+    min_fitness: float = 0.3  # fewer source points with an NDT/ICP correspondence: registration failed
+    max_jump_m: float = 1.5  # a result this far from the initial guess (translation) counts as failed
+    max_jump_deg: float = 5.0
+    zeta_formula: str = "paper"  # "paper": exp(-2 (e_hat/e_bar)^2); "inverse": exp(-2 (e_bar/e_hat)^2)
 
 
 @dataclass(frozen=True)
@@ -118,6 +143,23 @@ class LoopConfig:
     min_score: float = 0.3
     consistency: int = 3  # consecutive keyframes that must agree
     min_inliers: int = 30
+    # Added by the loop-closure issue (9); see plvo/loop/*.py.
+    vocab_dir: str = ""  # folder with orb.npz / lbd.npz; empty: the shipped plvo/assets/vocab
+    min_neighbour_score: float = 0.005  # skip the query when even the previous keyframe scores below this
+    neighbours: int = 1  # normalise by the best combined score among this many previous keyframes
+    island_gap: int = 3  # candidates this close in keyframe id form one island (DBoW2 group)
+    max_verify: int = 2  # best candidates of the winning island checked geometrically
+    loop_cooldown: int = 5  # keyframes after an accepted loop during which no new loop is verified
+    ratio: float = 0.8  # Lowe ratio for ORB / LBD matches between the two keyframes
+    point_max_hamming: int = 64
+    line_max_hamming: int = 80
+    ransac_px: float = 3.0  # PnP/PnL RANSAC and inlier threshold between the keyframes (px)
+    use_registration: bool = True  # refine the PnP/PnL pose by scan registration when scans are given
+    odom_sigma_rot: float = 0.01  # pose-graph sigmas of a keyframe-to-keyframe edge (rad, m)
+    odom_sigma_trans: float = 0.05
+    loop_sigma_rot: float = 0.01  # and of a verified loop edge
+    loop_sigma_trans: float = 0.05
+    pgo_iterations: int = 100
 
 
 @dataclass(frozen=True)

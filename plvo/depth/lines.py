@@ -1,0 +1,356 @@
+"""Line depth priors: a 3D line per image segment from the lidar points in a band around it (paper, II-B).
+
+For each segment the band's points are gathered (capped, evenly thinned) into padded (M,P) arrays; the
+foreground is kept per stretch of the segment (nearest depth within depth_jump of the stretch's nearest point,
+so a silhouette edge takes the occluder). The initial line lies in the segment's interpretation plane: inverse
+depth is affine along the image of a 3D line, so a robust fit 1/z = a + b t over the foreground gives the depths
+of the two segment ends. Levenberg-Marquardt over the orthonormal 4-dof update then minimises
+
+    sum_i huber(d(p_i, L)) + (w * e(L, l))^2
+
+with d the point-to-line distance (m) and e the paper's reprojection residual (px), batched over all lines with
+analytic Jacobians. The endpoints come from trimming with the segment's end rays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from plvo.config import DepthConfig
+from plvo.depth.projection import ProjectedScan, query_segments, to_padded
+from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch, orth_plucker_jacobian
+from plvo.geometry.lines import line_projection_matrix, orth_to_plucker, orth_update, plucker_to_orth
+from plvo.types import (
+    DEPTH_BAD_FIT,
+    DEPTH_GRAZING_RAY,
+    DEPTH_NOT_CONVERGED,
+    DEPTH_OK,
+    DEPTH_OUT_OF_RANGE,
+    DEPTH_TOO_FEW_POINTS,
+)
+
+_N_BINS = 8  # stretches along a segment for the foreground choice
+
+
+@dataclass(frozen=True)
+class LineDepthResult:
+    """Per segment (M rows), camera frame. endpoints (M,2,3) NaN where none; reason (M,) DEPTH_*; residual (M,)
+    RMS point-to-line distance of the inliers (m); inliers (M,) int; reproj_px (M,) RMS of the two end residuals;
+    plucker (M,6) fitted line (NaN where none); iterations (M,) LM iterations; band_index (M,P) indices into the
+    ProjectedScan (-1 padding); inlier_mask (M,P) bool."""
+
+    endpoints: np.ndarray
+    reason: np.ndarray
+    residual: np.ndarray
+    inliers: np.ndarray
+    reproj_px: np.ndarray
+    plucker: np.ndarray
+    iterations: np.ndarray
+    band_index: np.ndarray
+    inlier_mask: np.ndarray
+
+
+def line_depths(proj: ProjectedScan, segments: np.ndarray, K: np.ndarray, cfg: DepthConfig) -> LineDepthResult:
+    """(M,4) pixel segments + projected scan -> LineDepthResult (3D lines in the camera frame)."""
+    seg = np.asarray(segments, dtype=float).reshape(-1, 4)
+    M = len(seg)
+    owner, idx, t, perp = query_segments(proj, seg, float(cfg.line_patch_px))
+    count = np.bincount(owner, minlength=M)
+    keep = _thin(owner, count, cfg.line_max_points)
+    owner, idx, t, perp = owner[keep], idx[keep], t[keep], perp[keep]
+    bidx, _ = to_padded(owner, idx, M)
+    if len(proj) == 0 or M == 0 or len(idx) == 0:
+        return _no_lines(M, bidx.shape[1])
+    kpad, _ = to_padded(owner, np.arange(len(t)), M)
+    valid = bidx >= 0
+    pts = np.where(valid[:, :, None], proj.pts_cam[np.maximum(bidx, 0)], np.nan)
+    z = np.where(valid, proj.depth[np.maximum(bidx, 0)], np.nan)
+    tt = np.where(valid, t[np.maximum(kpad, 0)] if len(t) else 0.0, np.nan)
+    pp = np.where(valid, perp[np.maximum(kpad, 0)] if len(t) else 0.0, np.inf)
+
+    fg = _band_foreground(z, tt, pp, cfg)
+    za, zb, sel = _init_depths(z, tt, fg, cfg)
+    rays = _end_rays(K, seg)
+    good_init = np.isfinite(za) & np.isfinite(zb) & (za > 0) & (zb > 0) & (sel.sum(1) >= cfg.line_min_points)
+    p0 = np.where(good_init[:, None], rays[:, 0] * za[:, None], rays[:, 0] * 10.0)
+    p1 = np.where(good_init[:, None], rays[:, 1] * zb[:, None], rays[:, 1] * 10.0)
+    L, iters, converged = _lm(_plucker(p0, p1), pts, sel, K, seg, cfg)
+    dist = _distances(pts, L)
+    inl = fg & (dist <= cfg.line_inlier_m)
+    n_inl = inl.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(np.sum(np.where(inl, dist**2, 0.0), 1) / n_inl)
+        span = np.max(np.where(inl, tt, -np.inf), 1) - np.min(np.where(inl, tt, np.inf), 1)
+    rep = _reprojection(line_projection_matrix(K), _ends_h(seg), L)
+    ends, sin_min = _trim(L, rays)
+
+    reason = np.full(M, DEPTH_OK, dtype=np.int64)
+    ez = ends[:, :, 2]
+    reason[~np.all((ez > cfg.min_depth_m) & (ez <= cfg.max_depth_m), axis=1)] = DEPTH_OUT_OF_RANGE
+    reason[~(sin_min >= cfg.min_ray_line_sin)] = DEPTH_GRAZING_RAY
+    reason[~converged | ~np.all(np.isfinite(L), 1)] = DEPTH_NOT_CONVERGED
+    reason[~(rms <= cfg.line_max_rms_m) | ~(np.sqrt(np.mean(rep**2, 1)) <= cfg.line_max_reproj_px)] = DEPTH_BAD_FIT
+    few = (count < cfg.line_min_points) | ~good_init | (n_inl < cfg.line_min_points)
+    reason[few | ~(span >= cfg.line_min_coverage)] = DEPTH_TOO_FEW_POINTS
+    ok = reason == DEPTH_OK
+    ends[~ok] = np.nan
+    Lout = L.copy()
+    Lout[~ok] = np.nan
+    return LineDepthResult(
+        endpoints=ends,
+        reason=reason,
+        residual=rms,
+        inliers=n_inl.astype(np.int64),
+        reproj_px=np.sqrt(np.mean(rep**2, 1)),
+        plucker=Lout,
+        iterations=iters,
+        band_index=bidx,
+        inlier_mask=inl,
+    )
+
+
+def _thin(owner: np.ndarray, count: np.ndarray, cap: int) -> np.ndarray:
+    """(K,) sorted owners -> (K,) bool keeping at most about `cap` points a segment, every k-th of the band."""
+    if len(owner) == 0:
+        return np.zeros(0, dtype=bool)
+    stride = np.maximum(-(-count // max(cap, 1)), 1)
+    starts = np.cumsum(count) - count
+    rank = np.arange(len(owner)) - starts[owner]
+    return rank % stride[owner] == 0
+
+
+def _band_foreground(z: np.ndarray, tt: np.ndarray, perp: np.ndarray, cfg: DepthConfig) -> np.ndarray:
+    """(M,P) depths, positions along and pixel distances from the segment -> (M,P) bool foreground.
+
+    Per stretch of the segment the reference depth is the nearest return within core_px of the segment (the
+    nearest of the whole stretch when none is that close); the foreground is the points within depth_jump of it,
+    on both sides. So a silhouette takes the occluder, and at a concave fold (a wall's foot) the off-line road
+    returns in front of the fold are not taken for the edge.
+    """
+    M, P = z.shape
+    valid = np.isfinite(z)
+    b = np.clip((np.nan_to_num(tt) * _N_BINS).astype(np.int64), 0, _N_BINS - 1)
+    key = np.arange(M)[:, None] * _N_BINS + b
+    core = valid & (perp <= cfg.line_core_px)
+    zmin = np.full(M * _N_BINS, np.inf)
+    np.minimum.at(zmin, key[valid], z[valid])
+    zcore = np.full(M * _N_BINS, np.inf)
+    np.minimum.at(zcore, key[core], z[core])
+    zref = np.where(np.isfinite(zcore), zcore, zmin)[key]
+    with np.errstate(invalid="ignore"):
+        return valid & (np.abs(z - zref) <= np.maximum(cfg.depth_jump_min_m, cfg.depth_jump_ratio * zref))
+
+
+def _init_depths(z, tt, fg, cfg: DepthConfig, n_iter: int = 3):
+    """Robust affine fit of inverse depth along the segment -> depth at t=0 (M,), at t=1 (M,), inliers (M,P)."""
+    w = fg.astype(float)
+    iz = np.where(fg, 1.0 / np.where(fg, z, 1.0), 0.0)
+    t = np.nan_to_num(tt)
+    sel = fg
+    for _ in range(n_iter):
+        s0, s1, s2 = w.sum(1), (w * t).sum(1), (w * t * t).sum(1)
+        r0, r1 = (w * iz).sum(1), (w * t * iz).sum(1)
+        det = s0 * s2 - s1 * s1
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # Too little spread along t to get a slope: a constant inverse depth.
+            flat = det <= 1e-9 * np.maximum(s0 * s0, 1e-30)
+            a = np.where(flat, r0 / s0, (s2 * r0 - s1 * r1) / det)
+            b = np.where(flat, 0.0, (s0 * r1 - s1 * r0) / det)
+            zfit = 1.0 / (a[:, None] + b[:, None] * t)
+            tol = np.maximum(cfg.depth_jump_min_m, cfg.depth_jump_ratio * zfit)
+            sel = fg & (np.abs(z - zfit) <= tol)
+        w = sel.astype(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return 1.0 / a, 1.0 / (a + b), sel
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(...,3) x (...,3) -> (...,3), broadcasting; spelled out, np.cross is slow on small batches."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _end_rays(K: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """(M,4) segments -> (M,2,3) rays with z = 1 through the two ends."""
+    ends = seg.reshape(-1, 2, 2)
+    x = (ends[..., 0] - K[0, 2]) / K[0, 0]
+    y = (ends[..., 1] - K[1, 2]) / K[1, 1]
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def _plucker(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    d = q - p
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return np.concatenate([_cross(p, d), d], axis=1)
+
+
+def _distances(pts: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """(M,P,3) points, (M,6) lines -> (M,P) point-to-line distances |p x d - m| / |d| (NaN on NaN points)."""
+    m, d = L[:, :3], L[:, 3:]
+    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+    dx, dy, dz = d[:, 0, None], d[:, 1, None], d[:, 2, None]
+    ex = y * dz - z * dy - m[:, 0, None]
+    ey = z * dx - x * dz - m[:, 1, None]
+    ez = x * dy - y * dx - m[:, 2, None]
+    return np.sqrt((ex * ex + ey * ey + ez * ez) / np.sum(d * d, axis=1)[:, None])
+
+
+def _ex_cross(v: np.ndarray) -> np.ndarray:
+    """(...,3,K) columns v -> (...,3,3,K): [e_x x v, e_y x v, e_z x v] stacked on axis -3."""
+    vx, vy, vz = v[..., 0, :], v[..., 1, :], v[..., 2, :]
+    z = np.zeros_like(vx)
+    return np.stack(
+        [np.stack([z, -vz, vy], -2), np.stack([vz, z, -vx], -2), np.stack([-vy, vx, z], -2)], axis=-3
+    )
+
+
+def _point_normal_equations(p: np.ndarray, w: np.ndarray, U: np.ndarray, W: np.ndarray):
+    """Sums over points of w J^T J (M,4,4), w J^T r (M,4) and w |r|^2 (M,), r = (p x d - m)/|d|, from moments.
+
+    r and its Jacobian are affine in p: r = R0 + sum_j p_j R_j, J = G0 + sum_j p_j G_j. So every sum over the
+    points is a contraction of the 4x4 weighted moment matrix S of (1, p) with these small matrices, and the
+    per-point work is one batched (4,P)@(P,4) product. p: (M,P,3) zeros on padding, w: (M,P) zero on padding.
+    """
+    L = orth_to_plucker(U, W)
+    m, d = L[:, :3], L[:, 3:]
+    dL = orth_plucker_jacobian(U, W)
+    dm, dd = dL[:, :3], dL[:, 3:]  # (M,3,4)
+    nd = np.sqrt(np.sum(d * d, axis=1))
+    s = np.einsum("mi,mik->mk", d, dd) / (nd * nd)[:, None]  # (d|d|/d delta) / |d|
+    R0 = -m / nd[:, None]
+    Rj = _ex_cross(d[:, :, None])[..., 0] / nd[:, None, None]  # (M,3 j,3 i): e_j x d / |d|
+    R = np.concatenate([R0[:, None, :], Rj], axis=1)  # (M,4,3)
+    G0 = -dm / nd[:, None, None] - R0[:, :, None] * s[:, None, :]
+    Gj = _ex_cross(dd) / nd[:, None, None, None] - Rj[..., None] * s[:, None, None, :]  # (M,3,3,4)
+    G = np.concatenate([G0[:, None], Gj], axis=1)  # (M,4,3,4)
+    ph = np.concatenate([np.ones(p.shape[:2] + (1,)), p], axis=2)  # (M,P,4)
+    S = np.einsum("mpa,mpb->mab", ph * w[..., None], ph)
+    H = np.einsum("mab,maik,mbil->mkl", S, G, G)
+    g = np.einsum("mab,maik,mbi->mk", S, G, R)
+    c = np.einsum("mab,mai,mbi->m", S, R, R)
+    return H, g, c
+
+
+def _ends_h(seg: np.ndarray) -> np.ndarray:
+    """(M,4) segments -> (M,2,3) homogeneous end pixels."""
+    return np.concatenate([seg.reshape(-1, 2, 2), np.ones((len(seg), 2, 1))], axis=2)
+
+
+def _reprojection(KL: np.ndarray, ends_h: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """Line projection matrix K_L, (M,2,3) homogeneous segment ends, (M,6) camera lines -> (M,2) px residuals."""
+    l = L[:, :3] @ KL.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.einsum("mki,mi->mk", ends_h, l) / np.hypot(l[:, 0], l[:, 1])[:, None]
+
+
+def _to_camera(L_loc: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(M,6) lines in frames translated to c (M,3) -> (M,6) camera-frame lines: m = m_loc + c x d."""
+    return np.concatenate([L_loc[:, :3] + _cross(c, L_loc[:, 3:]), L_loc[:, 3:]], axis=1)
+
+
+def _huber_weights(dist: np.ndarray, sel: np.ndarray, delta: float) -> np.ndarray:
+    w = np.where(dist <= delta, 1.0, delta / np.maximum(dist, 1e-12))
+    return np.where(sel, w, 0.0)
+
+
+def _huber_cost(dist, sel, delta: float):
+    rho = np.where(dist <= delta, 0.5 * dist**2, delta * (dist - 0.5 * delta))
+    return np.sum(np.where(sel, rho, 0.0), 1)
+
+
+def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np.ndarray, cfg: DepthConfig):
+    """Batched Levenberg-Marquardt from (M,6) camera lines -> (M,6) camera lines, iterations (M,), converged (M,).
+
+    Each line is solved in a frame translated to the centroid of its points: the orthonormal parameters of a line
+    20 m from the origin are badly conditioned (w2 ~ 0.05, one radian of U moves it by metres) and Gauss-Newton
+    steps overshoot; near the origin the same problem converges in a few steps.
+    """
+    M = len(L0)
+    n_sel = np.maximum(sel.sum(1), 1)
+    c = np.where(sel[..., None], np.nan_to_num(pts), 0.0).sum(1) / n_sel[:, None]
+    c = np.where((sel.sum(1) > 0)[:, None], c, 0.0)
+    p = np.where(sel[..., None], np.nan_to_num(pts) - c[:, None, :], 0.0)
+    U, W = plucker_to_orth(_to_camera(L0, -c))
+    T = np.broadcast_to(np.eye(4), (M, 4, 4)).copy()
+    T[:, :3, 3] = c
+    KL = line_projection_matrix(K)
+    ends_h = _ends_h(seg)
+    lam = np.full(M, 1e-3)
+    active = np.ones(M, dtype=bool)
+    iters = np.zeros(M, dtype=np.int64)
+    converged = np.zeros(M, dtype=bool)
+    last_rel = np.full(M, np.inf)
+    wr, hub = float(cfg.line_reprojection_weight), float(cfg.line_huber_m)
+    eye = np.eye(4)
+    for _ in range(int(cfg.line_lm_iterations)):
+        if not active.any():
+            break
+        a = np.flatnonzero(active)
+        Ua, Wa, Pa, Sa = U[a], W[a], p[a], sel[a]
+        dist = _distances(Pa, orth_to_plucker(Ua, Wa))
+        Hp, gp, _ = _point_normal_equations(Pa, _huber_weights(dist, Sa, hub), Ua, Wa)
+        rl, _, Jl = line_residuals_and_jacobians_batch(K, T[a], Ua, Wa, seg[a])
+        H = Hp + wr**2 * np.einsum("mik,mil->mkl", Jl, Jl)
+        g = gp + wr**2 * np.einsum("mik,mi->mk", Jl, rl)
+        cost = _huber_cost(dist, Sa, hub) + 0.5 * wr**2 * np.sum(rl**2, 1)
+        A = H + lam[a, None, None] * (H * eye + 1e-9 * eye)
+        delta = -np.linalg.solve(A, g[..., None])[..., 0]
+        U2, W2 = orth_update(Ua, Wa, delta)
+        L2 = orth_to_plucker(U2, W2)
+        dist2 = _distances(Pa, L2)
+        rl2 = _reprojection(KL, ends_h[a], _to_camera(L2, c[a]))
+        cost2 = _huber_cost(dist2, Sa, hub) + 0.5 * wr**2 * np.sum(rl2**2, 1)
+        better = np.isfinite(cost2) & (cost2 <= cost)
+        U[a[better]], W[a[better]] = U2[better], W2[better]
+        lam[a] = np.where(better, lam[a] * 0.1, lam[a] * 10.0)
+        iters[a] += 1
+        step = np.linalg.norm(delta, axis=1)
+        rel = np.where(better, (cost - cost2) / np.maximum(cost, 1e-300), 0.0)
+        last_rel[a[better]] = rel[better]
+        # Settled: the step, the relative gain, or the absolute gain (1e-6 m^2, far below lidar noise) is tiny.
+        small = (step < 1e-7) | (better & ((rel <= 1e-4) | (step < 1e-5) | (cost - cost2 <= 1e-6)))
+        done = small | (lam[a] > 1e6)
+        converged[a[small]] = True
+        active[a[done]] = False
+    # Robust (Huber) fits of points spread over a surface creep on slowly; a line whose last accepted step
+    # gained under 1% is settled for a depth prior.
+    converged |= active & (last_rel < 1e-2)
+    return _to_camera(orth_to_plucker(U, W), c), iters, converged
+
+
+def _trim(L: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M,6) lines, (M,2,3) end rays -> endpoints (M,2,3) on the line nearest each ray, min sin(ray, line) (M,)."""
+    d = L[:, 3:] / np.linalg.norm(L[:, 3:], axis=1, keepdims=True)
+    p0 = _cross(L[:, 3:], L[:, :3]) / np.sum(L[:, 3:] * L[:, 3:], axis=1, keepdims=True)
+    r = rays / np.linalg.norm(rays, axis=2, keepdims=True)
+    b = np.einsum("mki,mi->mk", r, d)
+    e = np.einsum("mki,mi->mk", r, p0)
+    denom = 1.0 - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (b * e - np.einsum("mi,mi->m", d, p0)[:, None]) / denom
+    ends = p0[:, None, :] + t[..., None] * d[:, None, :]
+    return ends, np.sqrt(np.clip(denom, 0.0, 1.0)).min(axis=1)
+
+
+def _no_lines(M: int, P: int) -> LineDepthResult:
+    """Every segment without a prior (empty scan, no segments or no lidar point near any)."""
+    nan = np.full(M, np.nan)
+    return LineDepthResult(
+        endpoints=np.full((M, 2, 3), np.nan),
+        reason=np.full(M, DEPTH_TOO_FEW_POINTS, dtype=np.int64),
+        residual=nan,
+        inliers=np.zeros(M, dtype=np.int64),
+        reproj_px=nan.copy(),
+        plucker=np.full((M, 6), np.nan),
+        iterations=np.zeros(M, dtype=np.int64),
+        band_index=np.full((M, P), -1, dtype=np.int64),
+        inlier_mask=np.zeros((M, P), dtype=bool),
+    )
