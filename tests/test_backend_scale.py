@@ -1,0 +1,57 @@
+"""Scale correction (paper II-D): the registration factor pulls a newest keyframe with scaled translation back."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from plvo.backend.problem import make_synthetic_problem
+from plvo.backend.scale_correction import correct_scale, scale_factor, scale_problem
+from plvo.geometry import se3
+
+
+@pytest.fixture(scope="module")
+def scaled():
+    """Two keyframes, no depth priors: the monocular scale is unobservable, and the wrong-scale start (newest
+    translation x0.8, landmarks scaled about the first camera) reprojects exactly, so only the relative-pose
+    factor can move it. (Two-view lines without priors carry no pose information and are left out.)"""
+    truth = make_synthetic_problem(n_kf=2, n_points=200, n_lines=50, seed=3, prior_fraction=0.0)
+    T = truth.T_world_cam.copy()
+    rel = se3.inv(T[0]) @ T[1]
+    rel[:3, 3] *= 0.8
+    T[1] = T[0] @ rel
+    c0 = T[0][:3, 3]
+    p = dataclasses.replace(truth, T_world_cam=T, points=c0 + 0.8 * (truth.points - c0),
+                            lines=c0 + 0.8 * (truth.lines - c0))
+    return truth, p
+
+
+@pytest.mark.parametrize("zeta", [1.0, 1e-3])
+def test_registration_factor_restores_scale(scaled, zeta):
+    truth, p = scaled
+    res = correct_scale(dataclasses.replace(p, rel_zeta=np.full(len(p.rel_zeta), zeta)), newest_kf=1)
+    s = scale_factor(truth.T_world_cam[1], res.T_world_cam[1], p.T_world_cam[0])
+    assert abs(s - 1.0) < 0.01, s
+    assert np.linalg.norm(res.T_world_cam[1][:3, 3] - truth.T_world_cam[1][:3, 3]) < 0.01
+    assert np.array_equal(res.T_world_cam[0], p.T_world_cam[0])  # older keyframe held fixed
+    u = res.point_used
+    assert u.sum() > 100
+    assert np.median(np.linalg.norm(res.points[u] - truth.points[u], axis=1)) < 0.05  # landmarks rescaled too
+
+
+def test_without_the_factor_the_scale_stays_wrong(scaled):
+    truth, p = scaled
+    res = correct_scale(dataclasses.replace(p, rel_zeta=np.zeros(len(p.rel_zeta))), newest_kf=1)
+    assert abs(scale_factor(truth.T_world_cam[1], res.T_world_cam[1], p.T_world_cam[0]) - 0.8) < 0.01
+
+
+def test_scale_problem_frees_only_the_newest_and_its_landmarks():
+    truth = make_synthetic_problem(n_kf=5, n_points=100, n_lines=20, seed=4)
+    sub = scale_problem(truth, 4)
+    assert sub.fixed.tolist() == [True, True, True, True, False]
+    seen = set(truth.pt_idx[truth.pt_kf == 4].tolist())
+    assert set(sub.pt_idx.tolist()) == seen
+    assert len(sub.pt_kf) == int(np.isin(truth.pt_idx, list(seen)).sum())  # all their observations kept
+    assert sub.rel_ij.tolist() == [[3, 4]]
