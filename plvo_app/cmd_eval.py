@@ -3,7 +3,8 @@
 `metric` prints the KITTI devkit figures (translation error in %, rotation error in deg/m, per segment length
 100..800 m, a start every 10 frames), the ATE after SE(3) and Sim(3) alignment, and the relative error over short
 lengths with every frame a start. Both files are KITTI pose files (12 numbers a line, one line per frame).
-Further actions (e.g. `plvo eval run`) are added to EVAL_COMMANDS.
+`run` runs plvo ablations and KISS-ICP over sequences and writes Table I (see plvo_app/eval_run.py).
+Further actions are added to EVAL_COMMANDS.
 """
 
 from __future__ import annotations
@@ -130,9 +131,26 @@ def _run_metric(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_run_arguments(p: argparse.ArgumentParser) -> None:
+    from plvo_app.eval_run import add_run_arguments  # imports the runner (and kiss_icp lazily) only when used
+
+    add_run_arguments(p)
+
+
+def _run_run(args: argparse.Namespace) -> int:
+    from plvo_app.eval_run import run_run
+
+    return run_run(args)
+
+
 # name -> (add_arguments, run, one-line help); `plvo eval run` and friends register here.
 EVAL_COMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int], str]] = {
     "metric": (_add_metric_arguments, _run_metric, "KITTI devkit metric, ATE and short relative error of poses"),
+    "run": (
+        _add_run_arguments,
+        _run_run,
+        "run plvo ablations and KISS-ICP over sequences (local processes or Ray); Table I, JSON and plots",
+    ),
 }
 
 

@@ -1,0 +1,220 @@
+"""The paper's Table I from task results: errors per sequence and setting, averaged, as Markdown, JSON and plots.
+
+Rows are sequences, columns settings (the plvo ablations, then KISS-ICP). Figures are recomputed from each task
+folder's gt.txt and poses.txt with plvo.eval.kitti_metric, so they equal `plvo eval metric` on the same files.
+The "all" row is the devkit's pooled figure (every segment of every sequence averaged together, as the KITTI
+server computes it); "mean" is the plain mean of the per-sequence figures. Sequences shorter than 100 m have no
+devkit segment: their cells read "-", and the short-segment table (10/20/40 m, every frame a start) covers them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plvo.atomic import atomic_path, write_text_atomic
+from plvo.eval.kitti_metric import (
+    DEVKIT_LENGTHS,
+    SHORT_LENGTHS,
+    RelativeError,
+    SequenceEvaluation,
+    evaluate,
+)
+from plvo.eval.tasks import KISS_SETTING, TaskResult, load_poses
+
+TABLES: tuple[tuple[str, str, Any, str], ...] = (  # (json key, title, getter of a RelativeError, format)
+    ("t_err_pct", "Translation error [%] (KITTI devkit, 100-800 m)", lambda r: r.t_err_pct, "{:.2f}"),
+    ("r_err_deg_per_m", "Rotation error [deg/m] (KITTI devkit, 100-800 m)", lambda r: r.r_err_deg_per_m, "{:.4f}"),
+    ("short_t_err_pct", "Translation error [%] over 10/20/40 m, every frame a start", lambda r: r.t_err_pct, "{:.2f}"),
+    ("short_r_err_deg_per_m", "Rotation error [deg/m] over 10/20/40 m", lambda r: r.r_err_deg_per_m, "{:.4f}"),
+)
+LABELS = {
+    "full": "Ours (*)",
+    "no_depth_priors": "Ours (-)",
+    "no_scale_correction": "Ours (#)",
+    "points_only": "Point-only",
+    KISS_SETTING: "KISS-ICP",
+}
+
+
+@dataclass(frozen=True)
+class Report:
+    """settings, sequences: column and row names; evaluations[setting]: the pooled Evaluation over the sequences
+    that setting finished (None if none); cells[setting][sequence]: SequenceEvaluation or an error text;
+    results: the TaskResults; poses[setting][sequence]: (gt, est) (N,4,4) each."""
+
+    settings: tuple[str, ...]
+    sequences: tuple[str, ...]
+    evaluations: dict[str, Any]
+    cells: dict[str, dict[str, SequenceEvaluation | str]]
+    results: tuple[TaskResult, ...]
+    poses: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
+
+
+def _unique(values) -> tuple[str, ...]:
+    return tuple(dict.fromkeys(values))
+
+
+def build_report(results: Sequence[TaskResult]) -> Report:
+    """TaskResults (any order) -> Report with every figure recomputed from the task folders."""
+    settings = _unique(r.spec.setting for r in results)
+    settings = tuple(s for s in settings if s != KISS_SETTING) + tuple(s for s in settings if s == KISS_SETTING)
+    sequences = _unique(r.spec.source.name for r in results)
+    cells: dict[str, dict[str, Any]] = {s: {} for s in settings}
+    poses: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {s: {} for s in settings}
+    for r in results:
+        name, setting = r.spec.source.name, r.spec.setting
+        gt, est = load_poses(r) if r.ok else (None, None)
+        if not r.ok:
+            cells[setting][name] = f"failed: {r.error.splitlines()[0] if r.error else 'unknown error'}"
+        elif gt is None or est is None:
+            cells[setting][name] = "no ground truth"
+        else:
+            poses[setting][name] = (gt, est)
+    evaluations = {}
+    for setting in settings:
+        pairs = {seq: poses[setting][seq] for seq in sequences if seq in poses[setting]}
+        evaluations[setting] = evaluate(pairs) if pairs else None
+        if evaluations[setting] is not None:
+            cells[setting].update({ev.name: ev for ev in evaluations[setting].sequences})
+    return Report(settings, sequences, evaluations, cells, tuple(results), poses)
+
+
+def _num(value: float) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def _rel(ev: SequenceEvaluation, key: str) -> RelativeError:
+    return ev.short if key.startswith("short") else ev.kitti
+
+
+def table_values(report: Report, key: str, getter) -> dict[str, dict[str, float | None]]:
+    """setting -> {sequence: value or None, "all": pooled, "mean": mean of the sequences' values}."""
+    out: dict[str, dict[str, float | None]] = {}
+    for setting in report.settings:
+        col: dict[str, float | None] = {}
+        for seq in report.sequences:
+            cell = report.cells[setting].get(seq)
+            col[seq] = _num(getter(_rel(cell, key))) if isinstance(cell, SequenceEvaluation) else None
+        ev = report.evaluations[setting]
+        pooled = None if ev is None else (ev.short if key.startswith("short") else ev.kitti)
+        col["all"] = None if pooled is None else _num(getter(pooled))
+        vals = [col[s] for s in report.sequences if col[s] is not None]
+        complete = len(vals) == len(report.sequences)
+        col["mean"] = float(np.mean(vals)) if vals and complete else None
+        out[setting] = col
+    return out
+
+
+def _cell_value(report: Report, setting: str, seq: str, attr: str) -> float | None:
+    cell = report.cells[setting].get(seq)
+    if not isinstance(cell, SequenceEvaluation):
+        return None
+    if attr == "final_drift_m":
+        gt, est = report.poses[setting][seq]
+        return float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
+    return _num({"ate_m": cell.ate_se3.rmse_m, "ate_sim3_m": cell.ate_sim3.rmse_m}[attr])
+
+
+def report_json(report: Report) -> dict[str, Any]:
+    """The tables as one JSON object (stable keys; null where there is no figure)."""
+    by_task = {(r.spec.setting, r.spec.source.name): r for r in report.results}
+    data: dict[str, Any] = {
+        "settings": list(report.settings),
+        "labels": {s: LABELS.get(s, s) for s in report.settings},
+        "sequences": list(report.sequences),
+        "devkit_lengths_m": list(DEVKIT_LENGTHS),
+        "short_lengths_m": list(SHORT_LENGTHS),
+    }
+    for key, _title, getter, _fmt in TABLES:
+        data[key] = table_values(report, key, getter)
+    for attr in ("ate_m", "ate_sim3_m", "final_drift_m"):
+        data[attr] = {s: {q: _cell_value(report, s, q, attr) for q in report.sequences} for s in report.settings}
+    data["short_by_length_t_err_pct"] = {
+        s: {f"{e.length_m:g}": _num(e.t_err_pct) for e in ev.short.per_length} if ev is not None else {}
+        for s, ev in report.evaluations.items()
+    }
+    data["path_length_m"] = {q: _path_length(report, q) for q in report.sequences}
+    data["tasks"] = {
+        s: {
+            q: {"status": t.status, "error": t.error, "fps": t.fps, "seconds": t.seconds, "folder": str(t.folder)}
+            for q in report.sequences
+            if (t := by_task.get((s, q))) is not None
+        }
+        for s in report.settings
+    }
+    return data
+
+
+def _path_length(report: Report, seq: str) -> float | None:
+    for setting in report.settings:
+        if seq in report.poses[setting]:
+            gt = report.poses[setting][seq][0]
+            return float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)))
+    return None
+
+
+def _md_table(
+    report: Report, title: str, values: dict[str, dict[str, float | None]], fmt: str, rows=None, first="Seq."
+) -> list[str]:
+    head = [first] + [LABELS.get(s, s) for s in report.settings]
+    lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in rows if rows is not None else (*report.sequences, "all", "mean"):
+        cells = [fmt.format(values[s][row]) if values[s].get(row) is not None else "-" for s in report.settings]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
+    """Table I and friends as Markdown (one table per figure, sequences as rows, settings as columns)."""
+    data = data or report_json(report)
+    lines = ["# Evaluation", ""]
+    legend = ", ".join(f"{LABELS.get(s, s)} = `{s}`" for s in report.settings)
+    lengths = ", ".join(f"{q}: {v:.1f} m" for q, v in data["path_length_m"].items() if v is not None)
+    lines += [f"Settings: {legend}.", f"Ground-truth path lengths: {lengths}.", "",
+              "`all`: every segment of every sequence averaged together (the devkit's figure); `mean`: mean of the "
+              "sequences. `-`: no figure (a sequence shorter than 100 m has no devkit segment; a failed run).", ""]
+    for key, title, _getter, fmt in TABLES:
+        lines += _md_table(report, title, data[key], fmt)
+    by_length = data["short_by_length_t_err_pct"]
+    rows = [f"{v:g}" for v in data["short_lengths_m"]]
+    lines += _md_table(report, "Translation error [%] by short length, all sequences pooled", by_length, "{:.2f}",
+                       rows=rows, first="length [m]")
+    for attr, title in (("ate_m", "ATE RMSE [m] after SE(3) alignment"), ("final_drift_m", "Final drift [m]")):
+        lines += _md_table(report, title, data[attr], "{:.3f}", rows=report.sequences)
+    failed = [(s, q, t["error"]) for s, col in data["tasks"].items() for q, t in col.items() if t["status"] != "ok"]
+    if failed:
+        lines += ["**Failed runs**", ""] + [f"- {s} / {q}: {e.splitlines()[0] if e else '?'}" for s, q, e in failed]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_report(report: Report, out_dir: str | os.PathLike[str], plots: bool = True) -> dict[str, Path]:
+    """Write report.md, report.json and (plots) the PNG figures under out_dir; returns name -> path."""
+    out = Path(out_dir)
+    data = report_json(report)
+    paths = {"json": out / "report.json", "markdown": out / "report.md"}
+    write_text_atomic(paths["json"], json.dumps(data, indent=1, allow_nan=False) + "\n")
+    write_text_atomic(paths["markdown"], report_markdown(report, data))
+    if plots:
+        from plvo.eval.plots import write_plots
+
+        paths.update(write_plots(report, out / "plots"))
+    return paths
+
+
+def save_figure(fig, path: Path) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,183 @@
+"""Evaluation runs at scale: one task per (sequence, setting), fanned out over local processes or Ray.
+
+`build_specs` makes the RunSpecs (plvo under each ablation, KISS-ICP beside it); `execute(specs, out, workers=N)`
+runs them in this process for one worker, else over a ProcessPoolExecutor whose workers write their own task
+folders; `execute(..., ray="local" | ADDRESS)` sends one Ray task per spec (a local Ray with `workers` CPUs, or
+`ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster without a shared file system
+works as long as every node sees the datasets under the same paths and can import plvo. Whatever the fan-out,
+the results are the same TaskResults, read back from the folders (see plvo.eval.tasks).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import replace
+from typing import Any
+
+from plvo.errors import PlvoError
+from plvo.eval.kiss import KissOptions
+from plvo.eval.tasks import (  # noqa: F401  (re-exported: the runner is the public face)
+    KISS_SETTING,
+    METHODS,
+    RESULT_FILE,
+    MethodOutput,
+    RunSpec,
+    SequenceSource,
+    TaskOutput,
+    TaskResult,
+    execute_task,
+    load_poses,
+    metrics_dict,
+    read_result,
+    run_and_write,
+    run_pipeline,
+    write_task,
+)
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------- fan-out
+
+
+def _done(spec: RunSpec, out_dir: str | os.PathLike[str]) -> TaskResult | None:
+    """The finished result of the same spec in its folder, for --resume, else None."""
+    folder = spec.folder(out_dir)
+    if not (folder / RESULT_FILE).is_file():
+        return None
+    try:
+        result = read_result(folder)
+    except PlvoError:
+        return None
+    return result if result.ok and result.spec == spec else None
+
+
+def execute(
+    specs: Sequence[RunSpec],
+    out_dir: str | os.PathLike[str],
+    workers: int = 1,
+    ray: str | None = None,
+    resume: bool = False,
+    on_result: Callable[[TaskResult], None] | None = None,
+) -> list[TaskResult]:
+    """Run every spec (one task each) and write its folder under out_dir; results in the order of specs.
+
+    workers: local processes (1 = in this process) or, with ray="local", the CPUs of the local Ray; ray: None
+    (local processes), "local" (start a local Ray) or a cluster address for ray.init. resume: keep the folders of
+    specs already finished ok.
+    """
+    names = [(s.setting, s.source.name) for s in specs]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise PlvoError(f"two runs would write the same folder runs/{dup[0]}/{dup[1]}: give the sequences distinct labels")
+    out_dir = str(out_dir)
+    results: dict[int, TaskResult] = {}
+    todo = []
+    for k, spec in enumerate(specs):
+        previous = _done(spec, out_dir) if resume else None
+        if previous is not None:
+            results[k] = previous
+        else:
+            todo.append(k)
+    notify = on_result or (lambda r: None)
+    for r in results.values():
+        notify(r)
+    todo_specs = [specs[k] for k in todo]
+    if ray is not None:
+        gathered = _execute_ray(todo_specs, out_dir, ray, workers, notify)
+    elif workers <= 1 or len(todo_specs) <= 1:
+        gathered = []
+        for spec in todo_specs:
+            gathered.append(run_and_write(spec, out_dir))
+            notify(gathered[-1])
+    else:
+        gathered = _execute_processes(todo_specs, out_dir, workers, notify)
+    results.update(zip(todo, gathered))
+    return [results[k] for k in range(len(specs))]
+
+
+def _execute_processes(
+    specs: Sequence[RunSpec], out_dir: str, workers: int, notify: Callable[[TaskResult], None]
+) -> list[TaskResult]:
+    import multiprocessing
+
+    # spawn, not fork: kiss_icp and OpenCV start thread pools that a forked child must not inherit
+    ctx = multiprocessing.get_context("spawn")
+    results: dict[int, TaskResult] = {}
+    with ProcessPoolExecutor(max_workers=min(workers, len(specs)), mp_context=ctx) as pool:
+        futures = {pool.submit(run_and_write, spec, out_dir): k for k, spec in enumerate(specs)}
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            notify(results[futures[future]])
+    return [results[k] for k in range(len(specs))]
+
+
+def _execute_ray(
+    specs: Sequence[RunSpec], out_dir: str, address: str, workers: int, notify: Callable[[TaskResult], None]
+) -> list[TaskResult]:
+    try:
+        import ray
+    except ImportError:
+        raise PlvoError("--ray: the ray package is not installed (pip install 'ray[default]')") from None
+    started = False
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(execute_task)
+        pending = {remote.remote(spec): k for k, spec in enumerate(specs)}
+        results: dict[int, TaskResult] = {}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            k = pending.pop(ready[0])
+            try:
+                output = ray.get(ready[0])
+            except Exception as exc:  # a worker died or the task could not be shipped
+                output = TaskOutput(specs[k], "failed", error=f"ray: {type(exc).__name__}: {exc}")
+            results[k] = write_task(output, out_dir)
+            notify(results[k])
+        return [results[k] for k in range(len(specs))]
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# ---------------------------------------------------------------- building specs
+
+
+def build_specs(
+    sources: Iterable[SequenceSource],
+    ablations: Sequence[str] = ("full",),
+    kiss: bool = False,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    config_path: str | None = None,
+    kiss_options: KissOptions | None = None,
+) -> list[RunSpec]:
+    """Every (sequence, setting) pair: plvo under each ablation, then KISS-ICP when asked."""
+    specs = []
+    for source in sources:
+        for ablation in ablations:
+            specs.append(
+                RunSpec(source, "plvo", ablation, ablation, dict(overrides or {}), config_path)
+            )
+        if kiss:
+            specs.append(RunSpec(source, "kiss", KISS_SETTING, None, {}, None, kiss_options or KissOptions()))
+    return specs
+
+
+def kiss_threads(workers: int, ray: str | None) -> int:
+    """Threads for each KISS-ICP task: all cores alone (0), a fair share among local workers, 1 a Ray CPU."""
+    if ray is not None:
+        return 1
+    return 0 if workers <= 1 else max(1, (os.cpu_count() or 1) // workers)
+
+
+def with_threads(specs: Sequence[RunSpec], threads: int) -> list[RunSpec]:
+    """The specs with KISS-ICP's thread count set (see kiss_threads)."""
+    return [replace(s, kiss=replace(s.kiss, max_threads=threads)) if s.method == "kiss" else s for s in specs]

@@ -1,0 +1,345 @@
+"""One evaluation task: a RunSpec (sequence, method, setting) -> poses, metrics and a folder written atomically.
+
+A RunSpec names a sequence (dataset root + sequence name + frames), a method of METHODS ("plvo" or "kiss") and a
+setting (for plvo an ablation of config.ABLATIONS, plus optional config overrides; "kiss" for KISS-ICP). A task
+runs the method, anchors its poses at the first ground-truth pose, evaluates them with the devkit metric and
+writes `<out>/runs/<setting>/<label>/` atomically (built under a temporary name, then renamed): `poses.txt`
+(estimate, KITTI format), `gt.txt`, `result.json` (spec, status, metrics, timings), and for plvo `config.toml`.
+A failed task still writes its folder with status "failed" and the error, so that a sweep goes on.
+The fan-out over processes or Ray is in plvo.eval.runner.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plvo.atomic import write_text_atomic
+from plvo.config import config_to_toml, load_config, merge, with_ablation
+from plvo.data.dataset import Dataset, iter_frames
+from plvo.data.registry import open_dataset, parse_frames
+from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
+from plvo.errors import PlvoError
+from plvo.eval.kiss import KissOptions, run_kiss
+from plvo.eval.kitti_metric import RelativeError, SequenceEvaluation, evaluate_sequence
+
+log = logging.getLogger(__name__)
+
+RESULT_FILE = "result.json"
+KISS_SETTING = "kiss"
+
+
+@dataclass(frozen=True)
+class SequenceSource:
+    """A sequence to run: dataset root (None: $KITTI_ROOT), sequence name, frames 'A:B' (None: all), table label."""
+
+    root: str | None
+    sequence: str
+    frames: str | None = None
+    label: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.label or self.sequence
+
+    def open(self) -> Dataset:
+        frames = parse_frames(self.frames) if self.frames else None
+        return open_dataset(self.root, self.sequence, frames=frames)
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One task: a sequence, a method of METHODS, a setting name (table column; the ablation for plvo), nested
+    config overrides and an optional config file (plvo), KISS-ICP options (kiss)."""
+
+    source: SequenceSource
+    method: str = "plvo"
+    setting: str = "full"
+    ablation: str | None = "full"
+    overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    config_path: str | None = None
+    kiss: KissOptions = field(default_factory=KissOptions)
+
+    def folder(self, out_dir: str | os.PathLike[str]) -> Path:
+        return Path(out_dir) / "runs" / self.setting / self.source.name
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(data: Mapping[str, Any]) -> RunSpec:
+        data = dict(data)
+        data["source"] = SequenceSource(**data["source"])
+        data["kiss"] = KissOptions(**data.get("kiss", {}))
+        return RunSpec(**data)
+
+
+@dataclass(frozen=True)
+class MethodOutput:
+    """poses: (N,4,4) T_world_cam of cam0 (world = cam0 of the first frame); timings: stage -> seconds a run."""
+
+    poses: np.ndarray
+    timings: Mapping[str, Sequence[float]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TaskOutput:
+    """What a task computed (picklable, written to a folder by `write_task`). est/gt: (N,4,4) or None."""
+
+    spec: RunSpec
+    status: str  # "ok" or "failed"
+    error: str = ""
+    est: np.ndarray | None = None
+    gt: np.ndarray | None = None
+    n_frames: int = 0
+    seconds: float = 0.0
+    metrics: Mapping[str, Any] | None = None
+    timings: Mapping[str, Any] = field(default_factory=dict)
+    config_toml: str | None = None
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """A task's summary as read back from its folder: the result.json fields and the folder."""
+
+    spec: RunSpec
+    status: str
+    error: str
+    n_frames: int
+    seconds: float
+    fps: float
+    metrics: Mapping[str, Any] | None
+    timings: Mapping[str, Any]
+    folder: Path
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+# ---------------------------------------------------------------- methods
+
+
+def plvo_config(spec: RunSpec):
+    """The resolved SystemConfig of a plvo spec: file (or defaults), then the ablation, then the overrides."""
+    config = load_config(spec.config_path)
+    if spec.ablation:
+        config = with_ablation(config, spec.ablation)
+    if spec.overrides:
+        config = merge(config, {k: dict(v) for k, v in spec.overrides.items()})
+    return config
+
+
+def run_pipeline(dataset: Dataset, config) -> MethodOutput:
+    """Dataset + SystemConfig -> plvo's poses (N,4,4) T_world_cam; through plvo.system.run_dataset when it exists.
+
+    Adapter: until run_dataset exists, a System is stepped over the frames and its `poses` dict is read; a
+    checkout whose System has no tracker cannot estimate poses and raises PlvoError.
+    """
+    from plvo import system as plvo_system
+
+    run_dataset = getattr(plvo_system, "run_dataset", None)
+    if run_dataset is not None:
+        out = run_dataset(dataset, config)
+        return MethodOutput(np.asarray(out.poses, dtype=np.float64), dict(getattr(out, "timings", {}) or {}))
+    sys_ = plvo_system.System(config)
+    if not sys_.has_odometry:
+        raise PlvoError(
+            f"sequence {dataset.sequence}: the plvo pipeline estimates no poses in this checkout "
+            "(plvo.system has no run_dataset and its default stages have no tracker)"
+        )
+    try:
+        sys_.run(iter_frames(dataset))
+    finally:
+        sys_.close()
+    missing = [i for i in dataset.frame_indices if i not in sys_.poses]
+    if missing:
+        raise PlvoError(f"sequence {dataset.sequence}: no pose estimated for frame {missing[0]} ({len(missing)} missing)")
+    poses = np.stack([sys_.poses[i] for i in dataset.frame_indices])
+    return MethodOutput(poses, dict(sys_.timings))
+
+
+def _method_plvo(dataset: Dataset, spec: RunSpec) -> MethodOutput:
+    return run_pipeline(dataset, plvo_config(spec))
+
+
+def _method_kiss(dataset: Dataset, spec: RunSpec) -> MethodOutput:
+    out = run_kiss(dataset, spec.kiss)
+    return MethodOutput(out.poses, {"registration": out.seconds.tolist()})
+
+
+# method name -> (dataset, spec) -> MethodOutput
+METHODS: dict[str, Callable[[Dataset, RunSpec], MethodOutput]] = {"plvo": _method_plvo, "kiss": _method_kiss}
+
+
+# ---------------------------------------------------------------- one task
+
+
+def _finite(value: float) -> float | None:
+    return None if not np.isfinite(value) else float(value)
+
+
+def _per_length(rel: RelativeError) -> dict[str, dict[str, Any]]:
+    return {
+        f"{e.length_m:g}": {
+            "n_segments": e.n_segments,
+            "t_err_pct": _finite(e.t_err_pct),
+            "r_err_deg_per_m": _finite(e.r_err_deg_per_m),
+        }
+        for e in rel.per_length
+    }
+
+
+def metrics_dict(ev: SequenceEvaluation, gt: np.ndarray, est: np.ndarray) -> dict[str, Any]:
+    """A sequence's figures with the keys of `plvo eval metric --json` (NaN as null), plus final_drift_m: the
+    distance (m) between the last estimated and ground-truth positions, est anchored at the first gt pose."""
+    return {
+        "n_frames": ev.n_frames,
+        "path_length_m": ev.path_length_m,
+        "t_err_pct": _finite(ev.kitti.t_err_pct),
+        "r_err_deg_per_m": _finite(ev.kitti.r_err_deg_per_m),
+        "n_segments": ev.kitti.n_segments,
+        "ate_m": ev.ate_se3.rmse_m,
+        "ate_sim3_m": ev.ate_sim3.rmse_m,
+        "sim3_scale": ev.ate_sim3.scale,
+        "segments": _per_length(ev.kitti),
+        "short": _per_length(ev.short),
+        "short_t_err_pct": _finite(ev.short.t_err_pct),
+        "short_r_err_deg_per_m": _finite(ev.short.r_err_deg_per_m),
+        "final_drift_m": float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3])),
+    }
+
+
+def anchor(est: np.ndarray, gt_first: np.ndarray) -> np.ndarray:
+    """(N,4,4) estimate -> the same trajectory moved so that its first pose is gt_first (4,4)."""
+    return gt_first @ np.linalg.inv(est[0]) @ est
+
+
+def summarize_timings(timings: Mapping[str, Any]) -> dict[str, Any]:
+    """stage -> seconds per run (list) -> stage -> runs, median_ms, p90_ms, total_s; other values kept if JSON-able."""
+    out: dict[str, Any] = {}
+    for name, values in timings.items():
+        if isinstance(values, (list, tuple, np.ndarray)) and len(values) and np.isscalar(np.asarray(values)[0]):
+            v = np.asarray(values, dtype=np.float64)
+            out[str(name)] = {
+                "runs": int(v.size),
+                "median_ms": float(np.median(v) * 1e3),
+                "p90_ms": float(np.percentile(v, 90) * 1e3),
+                "total_s": float(v.sum()),
+            }
+        else:
+            try:
+                json.dumps(values)
+                out[str(name)] = values
+            except TypeError:
+                out[str(name)] = repr(values)
+    return out
+
+
+def execute_task(spec: RunSpec) -> TaskOutput:
+    """Run one spec (in any process) -> its poses and metrics; failures become status "failed", never raise."""
+    t0 = time.perf_counter()
+    try:
+        if spec.method not in METHODS:
+            raise PlvoError(f"unknown method {spec.method!r} (choose from {', '.join(METHODS)})")
+        config_toml = config_to_toml(plvo_config(spec)) if spec.method == "plvo" else None
+        dataset = spec.source.open()
+        out = METHODS[spec.method](dataset, spec)
+        est = np.asarray(out.poses, dtype=np.float64)
+        if est.shape != (len(dataset), 4, 4):
+            raise PlvoError(f"{spec.method} on {spec.source.name}: poses {est.shape}, expected ({len(dataset)},4,4)")
+        gt = dataset.gt_T_world_cam
+        metrics = None
+        if gt is not None:
+            est = anchor(est, gt[0])
+            metrics = metrics_dict(evaluate_sequence(gt, est, name=spec.source.name), gt, est)
+        return TaskOutput(
+            spec, "ok", est=est, gt=gt, n_frames=len(dataset), seconds=time.perf_counter() - t0,
+            metrics=metrics, timings=summarize_timings(out.timings), config_toml=config_toml,
+        )
+    except Exception as exc:  # one bad run must not end a sweep: record it
+        kind = "" if isinstance(exc, PlvoError) else f"{type(exc).__name__}: "
+        log.warning("task %s/%s failed: %s", spec.setting, spec.source.name, exc)
+        detail = "" if isinstance(exc, PlvoError) else "\n" + traceback.format_exc(limit=8)
+        return TaskOutput(spec, "failed", error=f"{kind}{exc}{detail}", seconds=time.perf_counter() - t0)
+
+
+def write_task(output: TaskOutput, out_dir: str | os.PathLike[str]) -> TaskResult:
+    """Write a task's folder atomically: fill a temporary sibling, then swap it in for any previous one."""
+    final = output.spec.folder(out_dir)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent))
+    try:
+        if output.est is not None:
+            write_kitti_poses(tmp / "poses.txt", output.est)
+        if output.gt is not None:
+            write_kitti_poses(tmp / "gt.txt", output.gt)
+        if output.config_toml is not None:
+            write_text_atomic(tmp / "config.toml", output.config_toml)
+        fps = output.n_frames / output.seconds if output.status == "ok" and output.seconds > 0 else 0.0
+        result = {
+            "spec": output.spec.to_json(),
+            "status": output.status,
+            "error": output.error,
+            "n_frames": output.n_frames,
+            "seconds": output.seconds,
+            "fps": fps,
+            "metrics": output.metrics,
+            "timings": dict(output.timings),
+        }
+        write_text_atomic(tmp / RESULT_FILE, json.dumps(result, indent=1, allow_nan=False) + "\n")
+        _swap_in(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return read_result(final)
+
+
+def _swap_in(tmp: Path, final: Path) -> None:
+    """Replace `final` by `tmp`; an old folder is renamed away first, so `final` is always old or new, complete."""
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+        os.replace(final, old / final.name)
+        os.replace(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, final)
+
+
+def read_result(folder: str | os.PathLike[str]) -> TaskResult:
+    """A task folder -> its TaskResult (from result.json)."""
+    folder = Path(folder)
+    path = folder / RESULT_FILE
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise PlvoError(f"{path}: cannot read task result ({exc})") from None
+    return TaskResult(
+        spec=RunSpec.from_json(data["spec"]), status=data["status"], error=data.get("error", ""),
+        n_frames=int(data.get("n_frames", 0)), seconds=float(data.get("seconds", 0.0)),
+        fps=float(data.get("fps", 0.0)), metrics=data.get("metrics"), timings=data.get("timings", {}), folder=folder,
+    )
+
+
+def load_poses(result: TaskResult) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A task's (gt, est) (N,4,4) from its folder, None where absent."""
+    gt_path, est_path = result.folder / "gt.txt", result.folder / "poses.txt"
+    gt = read_kitti_poses(gt_path) if gt_path.is_file() else None
+    est = read_kitti_poses(est_path) if est_path.is_file() else None
+    return gt, est
+
+
+def run_and_write(spec: RunSpec, out_dir: str) -> TaskResult:
+    """execute_task + write_task: what a local worker process runs."""
+    return write_task(execute_task(spec), out_dir)

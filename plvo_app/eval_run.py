@@ -1,0 +1,166 @@
+"""`plvo eval run`: run plvo (under each ablation) and KISS-ICP over sequences, then write Table I and plots.
+
+Examples:
+  plvo eval run --root /data/kitti --seq 00 04 --ablations full,points_only --kiss --out results/eval
+  plvo eval run --synth town/ --kiss --workers 2            # every sequence under town/sequences
+  plvo eval run --root ../shared/data/kitti --seq 04 --ablations none --kiss
+  plvo eval run --root /data/kitti --seq 00 01 02 --ray local --workers 2
+  plvo eval run --root /data/kitti --seq 00 --ray ray://head:10001 --set tracking.keyframe_every=3
+
+Each (sequence, setting) is one task writing `OUT/runs/<setting>/<sequence>/` (poses.txt, gt.txt, result.json,
+config.toml) atomically; the tables go to OUT/report.md and OUT/report.json, the plots to OUT/plots/*.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import logging
+import os
+import sys
+from pathlib import Path
+
+from plvo.config import ABLATIONS
+from plvo.data.registry import ROOT_ENV, parse_frames
+from plvo.errors import PlvoError
+from plvo.eval.kiss import KissOptions
+from plvo.eval.report import build_report, report_markdown, write_report
+from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
+
+log = logging.getLogger(__name__)
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__.split("\n\n")[0]
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = __doc__.split("\n", 1)[1]
+    src = p.add_argument_group("sequences (KITTI with --root and --seq, and/or synthetic with --synth)")
+    src.add_argument("--root", type=Path, help=f"KITTI odometry root (sequences/, poses/); default ${ROOT_ENV}")
+    src.add_argument("--seq", nargs="+", default=[], metavar="SEQ", help="sequences under --root, e.g. 00 04")
+    src.add_argument(
+        "--synth", nargs="+", type=Path, default=[], metavar="DIR",
+        help="synthetic town output: a root holding sequences/* (all are run) or one sequences/NAME folder",
+    )
+    src.add_argument("--frames", metavar="A:B", help="run frames A..B-1 of every sequence (default: all)")
+    p.add_argument(
+        "--ablations", default="full", metavar="A,B,...",
+        help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full)",
+    )
+    p.add_argument("--kiss", action="store_true", help="also run KISS-ICP (lidar only, voxel 1 m) on the same scans")
+    p.add_argument("--config", type=Path, help="plvo config TOML the ablations start from (default: built-in)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override a plvo config value for every plvo run, e.g. orb.n_features=1500 (repeatable)")
+    p.add_argument("--out", type=Path, default=Path("results/eval"), help="output folder (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="local worker processes (or CPUs of a local Ray); 1 runs in this process (default: %(default)s)")
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="fan out over Ray: a cluster ADDRESS for ray.init, or 'local' (also the bare flag)")
+    p.add_argument("--resume", action="store_true", help="keep finished task folders of the same spec, run the rest")
+    p.add_argument("--no-plots", action="store_true", help="write the tables only")
+
+
+def parse_overrides(items: list[str]) -> dict[str, dict[str, object]]:
+    """['orb.n_features=1500', ...] -> {'orb': {'n_features': 1500}}; values parsed as Python literals if they can."""
+    out: dict[str, dict[str, object]] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not section or not name:
+            raise PlvoError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. orb.n_features=1500")
+        lowered = text.strip().lower()
+        if lowered in ("true", "false"):
+            value: object = lowered == "true"
+        else:
+            try:
+                value = ast.literal_eval(text.strip())
+            except (ValueError, SyntaxError):
+                value = text.strip()
+        out.setdefault(section, {})[name] = value
+    return out
+
+
+def synth_sources(paths: list[Path], frames: str | None) -> list[SequenceSource]:
+    """--synth folders -> sources: a root's sequences/* (sorted), or a sequences/NAME folder itself."""
+    sources = []
+    for path in paths:
+        if (path / "sequences").is_dir():
+            names = sorted(d.name for d in (path / "sequences").iterdir() if d.is_dir() and not d.name.startswith("."))
+            if not names:
+                raise PlvoError(f"--synth {path}: no sequence folder under {path / 'sequences'}")
+            sources += [SequenceSource(str(path.resolve()), n, frames) for n in names]
+        elif path.parent.name == "sequences" and path.is_dir():
+            sources.append(SequenceSource(str(path.parent.parent.resolve()), path.name, frames))
+        else:
+            raise PlvoError(f"--synth {path}: neither a root with sequences/ nor a sequences/NAME folder")
+    return sources
+
+
+def _label(sources: list[SequenceSource]) -> list[SequenceSource]:
+    """Give every source a distinct table label: its name, prefixed with its root's name when names clash."""
+    names = [s.sequence for s in sources]
+    out = []
+    for s in sources:
+        label = s.sequence if names.count(s.sequence) == 1 else f"{Path(s.root or '').name}/{s.sequence}"
+        out.append(SequenceSource(s.root, s.sequence, s.frames, label.replace("/", "_")))
+    return out
+
+
+def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
+    if args.frames:
+        parse_frames(args.frames)  # fail early on a bad range
+    sources = []
+    if args.seq:
+        root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
+        if not root:
+            raise PlvoError(f"--seq {' '.join(args.seq)}: give --root or set ${ROOT_ENV}")
+        sources += [SequenceSource(str(Path(root).resolve()), s, args.frames) for s in args.seq]
+    elif args.root is not None:
+        raise PlvoError("--root given without --seq: name the sequences to run, e.g. --seq 00 04")
+    sources += synth_sources(args.synth, args.frames)
+    if not sources:
+        raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., or --synth DIR")
+    return _label(sources)
+
+
+def parse_ablations(text: str) -> list[str]:
+    names = [a.strip() for a in text.split(",") if a.strip()]
+    if names == ["none"]:
+        return []
+    bad = [a for a in names if a not in ABLATIONS]
+    if bad:
+        raise PlvoError(f"--ablations: unknown {bad[0]!r} (choose from {', '.join(ABLATIONS)}, or none)")
+    return list(dict.fromkeys(names))
+
+
+def _progress(total: int):
+    done = [0]
+
+    def report(r: TaskResult) -> None:
+        done[0] += 1
+        figure = ""
+        if r.ok and r.metrics:
+            figure = f"short t_err {r.metrics.get('short_t_err_pct') or float('nan'):.2f} %"
+        state = "ok" if r.ok else "FAILED: " + (r.error.splitlines()[0] if r.error else "?")
+        print(f"[{done[0]}/{total}] {r.spec.setting} / {r.spec.source.name}: {state} {figure}", file=sys.stderr)
+
+    return report
+
+
+def run_run(args: argparse.Namespace) -> int:
+    """Build the specs, fan them out, write the report; exit 1 when a task failed (the tables are written)."""
+    if args.workers < 1:
+        raise PlvoError(f"--workers {args.workers}: must be at least 1")
+    sources = gather_sources(args)
+    ablations = parse_ablations(args.ablations)
+    if not ablations and not args.kiss:
+        raise PlvoError("nothing to run: --ablations none and no --kiss")
+    config = str(args.config.resolve()) if args.config else None
+    specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions())
+    specs = with_threads(specs, kiss_threads(args.workers, args.ray))
+    results = execute(specs, args.out, workers=args.workers, ray=args.ray, resume=args.resume,
+                      on_result=_progress(len(specs)))
+    report = build_report(results)
+    paths = write_report(report, args.out, plots=not args.no_plots)
+    print(report_markdown(report))
+    print(f"wrote {paths['markdown']} and {paths['json']}" + ("" if args.no_plots else f", plots in {args.out / 'plots'}"))
+    return 0 if all(r.ok for r in results) else 1
