@@ -155,6 +155,8 @@ class LoopConfig:
     line_max_hamming: int = 80
     ransac_px: float = 3.0  # PnP/PnL RANSAC and inlier threshold between the keyframes (px)
     use_registration: bool = True  # refine the PnP/PnL pose by scan registration when scans are given
+    min_off_plane: int = 0  # PnP/PnL inliers that must lie off their dominant plane (repeated ground textures)
+    plane_tolerance_m: float = 0.3
     odom_sigma_rot: float = 0.01  # pose-graph sigmas of a keyframe-to-keyframe edge (rad, m)
     odom_sigma_trans: float = 0.05
     loop_sigma_rot: float = 0.01  # and of a verified loop edge

@@ -1,0 +1,425 @@
+"""The frame-to-frame tracker (paper II-C): features, 2D-2D matching with the previous frame, PnPL against the
+landmarks seen in the previous frame, outlier removal, keyframes with landmarks from the lidar depth priors.
+
+Landmark creation, in keyframes only:
+- with depth priors (default): a point with a depth prior is back-projected; a line with a depth prior gets its
+  trimmed 3D endpoints. Lines are never triangulated from views alone.
+- ablation `use_depth_priors=False`: point landmarks are triangulated between the previous keyframe and this one
+  with the tracker's own poses (2D tracks chained through the frame-to-frame matches); lines are not used at
+  all. The first frame and every re-initialisation still take lidar depth, or the run would have no scale.
+- `points_only`: no line is matched, created or used.
+
+Tracking loss (PnPL fails or keeps fewer than cfg.tracking.min_pnp_inliers matches) takes the constant-velocity
+prediction as the pose, forgets the tracked landmarks, makes a keyframe and re-initialises its landmarks from the
+current lidar depth; the log and the result's message say so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plvo.config import SystemConfig
+from plvo.geometry import se3
+from plvo.geometry.camera import backproject, in_image, pixel_rays, project
+from plvo.tracking import keyframes as kfp
+from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, closest_points_on_lines, triangulate_tracks
+from plvo.tracking.map import FrameAssociation, LandmarkMap, search_by_projection
+from plvo.tracking.pnpl import refine_pose, solve_pnpl
+from plvo.results import TrackingResult
+from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
+
+log = logging.getLogger(__name__)
+
+INITIALISED, TRACKED, REINITIALISED = "initialised", "tracked", "reinitialised"
+
+
+def _arr(shape: tuple[int, ...], dtype: type = float):
+    return field(default_factory=lambda: np.zeros(shape, dtype))
+
+
+@dataclass(frozen=True)
+class FrontendResult(TrackingResult):
+    """plvo.results.TrackingResult (what recorders read) plus what the tracker knows beyond it.
+
+    Base fields: T_world_cam (4,4) of the tracked camera; point_inliers / line_inliers: indices of this frame's
+    keypoints / segments tracked and kept by PnPL; ok: False after a tracking loss (the pose is then the
+    constant-velocity prediction and the landmarks were re-initialised from lidar depth).
+    Extra: T_world_cam0 (4,4) the same pose for cam0 (what is reported); status "initialised" | "tracked" |
+    "reinitialised"; point_uv (K,2) current pixels of the 3D-2D point matches, point_landmark (K,) their landmark
+    ids, point_inlier (K,) bool; line_segments (L,4), line_landmark (L,), line_inlier (L,) likewise; association:
+    this frame's features -> landmark ids after outlier removal; keyframe: what the back end needs when this frame
+    is a keyframe; timings: seconds per step ("features", "matching", "pnpl", "keyframe", "total").
+    """
+
+    T_world_cam0: np.ndarray = field(default_factory=lambda: np.eye(4))
+    status: str = TRACKED
+    keyframe_reason: str = ""
+    point_uv: np.ndarray = _arr((0, 2))
+    point_landmark: np.ndarray = _arr((0,), np.int64)
+    point_inlier: np.ndarray = _arr((0,), bool)
+    line_segments: np.ndarray = _arr((0, 4))
+    line_landmark: np.ndarray = _arr((0,), np.int64)
+    line_inlier: np.ndarray = _arr((0,), bool)
+    n_new_points: int = 0
+    n_new_lines: int = 0
+    association: FrameAssociation | None = None
+    features: FeatureSet | None = None
+    keyframe: KeyframeInfo | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_point_inliers(self) -> int:
+        return int(self.point_inlier.sum())
+
+    @property
+    def n_line_inliers(self) -> int:
+        return int(self.line_inlier.sum())
+
+
+@dataclass
+class _FrameState:
+    index: int
+    features: FeatureSet
+    T_world_cam: np.ndarray
+    assoc: FrameAssociation
+    kf_track: np.ndarray  # (N,) keypoint index in the last keyframe this keypoint was tracked from, -1 none
+
+
+def _default_stages():
+    # Imported lazily so that the tracker's own logic can be used (and tested) with other stages.
+    from plvo.depth.extract import extract_depth_priors
+    from plvo.features.extract import extract_features
+    from plvo.features.matching import match_lines, match_points
+
+    return extract_features, match_points, match_lines, extract_depth_priors
+
+
+class Frontend:
+    """Per-frame tracker. `track(frame)` once per frame, in order; `map` is shared with the back end."""
+
+    def __init__(self, calib: Calibration, config: SystemConfig, landmark_map: LandmarkMap | None = None,
+                 T_world_cam_init: np.ndarray | None = None, stages: tuple[Callable, ...] | None = None):
+        """stages: (extract_features, match_points, match_lines, extract_depth_priors), defaults to plvo's."""
+        self.calib = calib
+        self.cfg = config
+        self.K = np.asarray(calib.K, dtype=float)
+        self.map = landmark_map if landmark_map is not None else LandmarkMap()
+        self.policy = KeyframePolicy(config.tracking)
+        self._extract, self._match_points, self._match_lines, self._depth = stages or _default_stages()
+        self._T_init = np.array(calib.T_cam0_cam if T_world_cam_init is None else T_world_cam_init, dtype=float)
+        self._T_cam_cam0 = se3.inv(np.asarray(calib.T_cam0_cam, dtype=float))
+        self._prev: _FrameState | None = None
+        self._last_kf: _FrameState | None = None
+        self._last_kf_id = -1
+        self._recent_kfs: deque[_FrameState] = deque(maxlen=max(1, config.tracking.search_keyframes))
+        self._last_kf_pose_seen: np.ndarray | None = None
+        self._velocity = np.eye(4)  # T_prev_cur of the last tracked step
+        self.uses_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
+
+    # ---- the per-frame entry point -----------------------------------------------------------------------
+    def track(self, frame: Frame) -> FrontendResult:
+        """Estimate the pose of `frame` (the next one in order) and update the map."""
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        if self.uses_lines:
+            feats = self._extract(frame.image, self.cfg.orb, self.cfg.lines)
+        else:  # no line is used: do not spend time detecting them
+            feats = self._extract(frame.image, self.cfg.orb, self.cfg.lines, points_only=True)
+        timings["features"] = time.perf_counter() - t0
+        if self._prev is None:
+            res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
+        else:
+            res = self._track(frame, feats, timings)
+        timings["total"] = time.perf_counter() - t0
+        return dataclasses.replace(res, timings=timings)
+
+    def _track(self, frame: Frame, feats: FeatureSet, timings: dict[str, float]) -> FrontendResult:
+        prev = self._prev
+        self._reanchor_to_map()
+        T_pred = prev.T_world_cam @ self._velocity
+        t = time.perf_counter()
+        pm, lm = self._match(prev, feats, T_pred)
+        corr = self._correspondences(prev, feats, pm, lm)
+        timings["matching"] = time.perf_counter() - t
+        t = time.perf_counter()
+        sol = solve_pnpl(self.K, corr["pts"], corr["uv"], corr["lines"], corr["segs"], T_pred, self.cfg.tracking)
+        timings["pnpl"] = time.perf_counter() - t
+        if not sol.success:
+            first = sol.message
+            sol, corr = self._rescue(prev, feats, T_pred, corr, timings)
+            if sol.success:
+                log.info("frame %d: frame-to-frame PnPL failed (%s); recovered (%s)", frame.index, first,
+                         sol.message)
+        if not sol.success:
+            msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
+                   f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
+            log.warning(msg)
+            return self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
+        t = time.perf_counter()
+        T, corr, p_in, l_in = self._search_landmarks(feats, sol.T_world_cam, corr, sol.point_inliers,
+                                                     sol.line_inliers)
+        timings["search"] = time.perf_counter() - t
+        assoc = FrameAssociation.empty(feats.n_points, feats.n_lines)
+        assoc.point_landmark[corr["p_cur"][p_in]] = corr["p_lm"][p_in]
+        assoc.line_landmark[corr["l_cur"][l_in]] = corr["l_lm"][l_in]
+        kf_track = np.full(feats.n_points, -1, np.int64)
+        kf_track[pm.pairs[:, 1]] = prev.kf_track[pm.pairs[:, 0]]
+        self.map.mark_seen(assoc.point_landmark[assoc.point_landmark >= 0],
+                           assoc.line_landmark[assoc.line_landmark >= 0], frame.index)
+        self._velocity = se3.inv(prev.T_world_cam) @ T
+        state = _FrameState(frame.index, feats, T, assoc, kf_track)
+        decision = self.policy.decide(frame.index, T, assoc.n_points + assoc.n_lines)
+        keyframe, n_new = None, (0, 0)
+        if decision.is_keyframe:
+            t = time.perf_counter()
+            keyframe, n_new = self._make_keyframe(frame, state, decision.reason, from_lidar=False)
+            timings["keyframe"] = time.perf_counter() - t
+        self._prev = state
+        n_found = len(corr["p_lm"]) - len(sol.point_inliers)
+        msg = (f"frame {frame.index}: {int(p_in.sum())}/{len(p_in)} point ({n_found} re-found by projection) and "
+               f"{int(l_in.sum())}/{len(l_in)} line inliers" + (f"; keyframe ({decision.reason})" if keyframe else ""))
+        log.debug(msg)
+        return self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
+                            corr, (p_in, l_in), n_new, keyframe, timings)
+
+    # ---- matching and correspondences --------------------------------------------------------------------
+    def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray) -> tuple[Matches, Matches]:
+        pred_uv = self._predict_points(prev, T_pred)
+        pm = self._match_points(prev.features, feats, self.cfg.matching, predicted_uv=pred_uv)
+        if not self.uses_lines or prev.features.n_lines == 0 or feats.n_lines == 0:
+            return pm, Matches(np.zeros((0, 2), np.int64), np.zeros(0))
+        pred_seg = self._predict_segments(prev, T_pred)
+        lm = self._match_lines(prev.features, feats, self.cfg.matching, predicted_segments=pred_seg)
+        return pm, lm
+
+    def _rotation_homography(self, T_world_prev: np.ndarray, T_world_cur: np.ndarray) -> np.ndarray:
+        R = (se3.inv(T_world_cur) @ T_world_prev)[:3, :3]
+        return self.K @ R @ np.linalg.inv(self.K)
+
+    def _predict_points(self, prev: _FrameState, T_pred: np.ndarray) -> np.ndarray:
+        """(N_prev,2) predicted pixels of the previous keypoints: landmarks projected with the predicted pose,
+        the rest moved by the predicted rotation alone (points at infinity)."""
+        uv = prev.features.keypoints.astype(float)
+        H = self._rotation_homography(prev.T_world_cam, T_pred)
+        hom = np.c_[uv, np.ones(len(uv))] @ H.T
+        pred = hom[:, :2] / hom[:, 2:3]
+        has = prev.assoc.point_landmark >= 0
+        if has.any():
+            pw = self.map.point_positions(prev.assoc.point_landmark[has])
+            puv, z = project(self.K, se3.transform_points(se3.inv(T_pred), pw))
+            ok = np.isfinite(puv).all(axis=1) & (z > 0)
+            rows = np.flatnonzero(has)[ok]
+            pred[rows] = puv[ok]
+        return pred
+
+    def _predict_segments(self, prev: _FrameState, T_pred: np.ndarray) -> np.ndarray:
+        """(M_prev,4) predicted segments: the previous segment's ends lifted onto their 3D line landmark (closest
+        points to the end rays) and projected with the predicted pose; by rotation alone without a landmark."""
+        seg = prev.features.segments.astype(float)
+        H = self._rotation_homography(prev.T_world_cam, T_pred)
+        ends = np.c_[seg.reshape(-1, 2), np.ones(2 * len(seg))] @ H.T
+        pred = (ends[:, :2] / ends[:, 2:3]).reshape(-1, 4)
+        has = prev.assoc.line_landmark >= 0
+        if has.any():
+            Lw = self.map.line_endpoints(prev.assoc.line_landmark[has])
+            T_prev_world = se3.inv(prev.T_world_cam)
+            lifted = closest_points_on_lines(
+                se3.transform_points(T_prev_world, Lw[:, 0]), se3.transform_points(T_prev_world, Lw[:, 1]),
+                pixel_rays(self.K, seg[has].reshape(-1, 2)).reshape(-1, 2, 3))
+            pc = se3.transform_points(se3.inv(T_pred) @ prev.T_world_cam, lifted.reshape(-1, 3))
+            puv, z = project(self.K, pc)
+            puv = puv.reshape(-1, 4)
+            ok = np.isfinite(puv).all(axis=1) & (z.reshape(-1, 2) > 0).all(axis=1)
+            pred[np.flatnonzero(has)[ok]] = puv[ok]
+        return pred
+
+    def _correspondences(self, prev: _FrameState, feats: FeatureSet, pm: Matches, lm: Matches) -> dict:
+        """3D-2D matches from the 2D-2D matches whose previous feature is tracked to a live landmark."""
+        p_lm = prev.assoc.point_landmark[pm.pairs[:, 0]] if len(pm) else np.zeros(0, np.int64)
+        p_cur = pm.pairs[:, 1] if len(pm) else np.zeros(0, np.int64)
+        keep = p_lm >= 0
+        p_lm, p_cur = p_lm[keep], p_cur[keep]
+        alive = self.map.point_alive(p_lm)
+        p_lm, p_cur = p_lm[alive], p_cur[alive]
+        l_lm = prev.assoc.line_landmark[lm.pairs[:, 0]] if len(lm) else np.zeros(0, np.int64)
+        l_cur = lm.pairs[:, 1] if len(lm) else np.zeros(0, np.int64)
+        keep = l_lm >= 0
+        l_lm, l_cur = l_lm[keep], l_cur[keep]
+        alive = self.map.line_alive(l_lm)
+        l_lm, l_cur = l_lm[alive], l_cur[alive]
+        return {
+            "p_lm": p_lm, "p_cur": p_cur, "pts": self.map.point_positions(p_lm),
+            "uv": feats.keypoints[p_cur].astype(float).reshape(-1, 2),
+            "l_lm": l_lm, "l_cur": l_cur, "lines": self.map.line_endpoints(l_lm),
+            "segs": feats.segments[l_cur].astype(float).reshape(-1, 4),
+        }
+
+    def _search_landmarks(self, feats: FeatureSet, T: np.ndarray, corr: dict, p_in: np.ndarray, l_in: np.ndarray,
+                          radius_px: float | None = None, refine: bool = True):
+        """Re-find point landmarks of the recent keyframes that the frame-to-frame matching lost: project them with
+        pose T, match by descriptor within radius_px (cfg.tracking.search_radius_px), refine the pose on all.
+        (An addition to the paper's frame-to-frame scheme: without it most landmarks live two or three frames.)
+        Returns (T, corr extended by the found matches, point inliers, line inliers)."""
+        cfg = self.cfg.tracking
+        if cfg.search_keyframes <= 0 or not self._recent_kfs:
+            return T, corr, p_in, l_in
+        cand = np.unique(np.concatenate([kf.assoc.point_landmark for kf in self._recent_kfs]))
+        cand = np.setdiff1d(cand[cand >= 0], corr["p_lm"])
+        cand = cand[self.map.point_alive(cand)]
+        if len(cand) == 0:
+            return T, corr, p_in, l_in
+        uv, z = project(self.K, se3.transform_points(se3.inv(T), self.map.point_positions(cand)))
+        uv[(z < 0.5) | ~in_image(uv, self.calib.width, self.calib.height)] = np.nan
+        free = np.ones(feats.n_points, bool)
+        free[corr["p_cur"]] = False
+        rows, kps = search_by_projection(uv, self.map.point_descriptors(cand), feats.keypoints, feats.descriptors,
+                                         free, radius_px or cfg.search_radius_px, self.cfg.matching.point_max_hamming)
+        if len(rows) == 0:
+            return T, corr, p_in, l_in
+        corr = dict(corr)
+        corr["p_lm"] = np.r_[corr["p_lm"], cand[rows]]
+        corr["p_cur"] = np.r_[corr["p_cur"], kps]
+        corr["pts"] = np.r_[corr["pts"], self.map.point_positions(cand[rows])]
+        corr["uv"] = np.r_[corr["uv"], feats.keypoints[kps].astype(float)]
+        p_in = np.r_[p_in, np.zeros(len(rows), bool)]
+        if refine:
+            T, p_in, l_in = refine_pose(self.K, T, corr["pts"], corr["uv"], corr["lines"], corr["segs"], cfg)
+        return T, corr, p_in, l_in
+
+    def _rescue(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray, corr: dict,
+                timings: dict[str, float]):
+        """Frame-to-frame PnPL failed. First search the recent keyframes' landmarks around their predicted
+        projections in a wider window; if that fails too, the prediction itself is suspect (e.g. a turn that just
+        ended): match the previous frame again without any prediction and let RANSAC find the pose."""
+        t = time.perf_counter()
+        none = np.zeros(len(corr["p_lm"]), bool)
+        _, wide, _, _ = self._search_landmarks(feats, T_pred, corr, none, np.zeros(len(corr["l_lm"]), bool),
+                                               radius_px=3 * self.cfg.tracking.search_radius_px, refine=False)
+        sol = solve_pnpl(self.K, wide["pts"], wide["uv"], wide["lines"], wide["segs"], T_pred, self.cfg.tracking)
+        if not sol.success:
+            pm = self._match_points(prev.features, feats, self.cfg.matching, predicted_uv=None)
+            lm = _no_matches()
+            if self.uses_lines and prev.features.n_lines and feats.n_lines:
+                lm = self._match_lines(prev.features, feats, self.cfg.matching, predicted_segments=None)
+            free = self._correspondences(prev, feats, pm, lm)
+            sol_free = solve_pnpl(self.K, free["pts"], free["uv"], free["lines"], free["segs"], None,
+                                  self.cfg.tracking)
+            if sol_free.success:
+                sol, wide = sol_free, free
+        timings["rescue"] = time.perf_counter() - t
+        return sol, wide
+
+    def _reanchor_to_map(self) -> None:
+        """Follow the back end: when it moved the last keyframe, move the previous frame's pose rigidly with it."""
+        if self._last_kf_id < 0 or self._last_kf_pose_seen is None:
+            return
+        T_kf = self.map.keyframe_pose(self._last_kf_id)
+        if np.allclose(T_kf, self._last_kf_pose_seen, atol=1e-12):
+            return
+        self._prev.T_world_cam = T_kf @ se3.inv(self._last_kf_pose_seen) @ self._prev.T_world_cam
+        self._last_kf_pose_seen = T_kf
+
+    # ---- keyframes and landmarks -------------------------------------------------------------------------
+    def _initialise(self, frame: Frame, feats: FeatureSet, T: np.ndarray, status: str, reason: str, msg: str,
+                    timings: dict[str, float], corr: dict | None = None) -> FrontendResult:
+        """A keyframe whose landmarks all come from the current lidar depth (first frame, or after a loss)."""
+        state = _FrameState(frame.index, feats, np.array(T, dtype=float),
+                            FrameAssociation.empty(feats.n_points, feats.n_lines),
+                            np.full(feats.n_points, -1, np.int64))
+        t = time.perf_counter()
+        keyframe, n_new = self._make_keyframe(frame, state, reason, from_lidar=True)
+        timings["keyframe"] = time.perf_counter() - t
+        log.info("frame %d: %s; %d point and %d line landmarks from lidar depth", frame.index, reason, *n_new)
+        self._prev = state
+        if corr is None:
+            corr = self._correspondences(state, feats, _no_matches(), _no_matches())
+        return self._result(frame, state, status, msg, reason, 0, 0, corr, None, n_new, keyframe, timings)
+
+    def _make_keyframe(self, frame: Frame, state: _FrameState, reason: str, from_lidar: bool
+                       ) -> tuple[KeyframeInfo, tuple[int, int]]:
+        kf_id = self.map.add_keyframe(frame.index, state.T_world_cam)
+        assoc, feats = state.assoc, state.features
+        pi = np.flatnonzero(assoc.point_landmark >= 0)
+        self.map.add_point_observations(assoc.point_landmark[pi], kf_id, pi, feats.keypoints[pi])
+        li = np.flatnonzero(assoc.line_landmark >= 0)
+        self.map.add_line_observations(assoc.line_landmark[li], kf_id, li, feats.segments[li])
+        priors: DepthPriors | None = None
+        if from_lidar or self.cfg.tracking.use_depth_priors:
+            priors = self._depth(frame.scan, feats, self.calib, self.cfg.depth)
+            n_new = self._landmarks_from_priors(kf_id, state, priors, lines=self.uses_lines)
+        else:
+            n_new = (self._landmarks_from_triangulation(kf_id, state), 0)
+        self.policy.accept(frame.index, state.T_world_cam)
+        state.kf_track = np.arange(feats.n_points)
+        self._last_kf, self._last_kf_id = state, kf_id
+        self._recent_kfs.append(state)
+        self._last_kf_pose_seen = state.T_world_cam.copy()
+        log.info("frame %d: keyframe %d (%s): %d new point and %d new line landmarks", frame.index, kf_id, reason,
+                 *n_new)
+        info = KeyframeInfo(kf_id, frame.index, state.T_world_cam.copy(), frame, feats, priors,
+                            assoc.point_landmark.copy(), assoc.line_landmark.copy(), reason)
+        return info, n_new
+
+    def _landmarks_from_priors(self, kf_id: int, state: _FrameState, priors: DepthPriors, lines: bool
+                               ) -> tuple[int, int]:
+        assoc, feats, T = state.assoc, state.features, state.T_world_cam
+        new_p = np.flatnonzero((assoc.point_landmark < 0) & priors.point_valid)
+        pc = backproject(self.K, feats.keypoints[new_p], priors.point_depth[new_p])
+        ids = self.map.add_points(se3.transform_points(T, pc), feats.descriptors[new_p], np.ones(len(new_p), bool),
+                                  kf_id, new_p, feats.keypoints[new_p])
+        assoc.point_landmark[new_p] = ids
+        if not lines:
+            return len(new_p), 0
+        new_l = np.flatnonzero((assoc.line_landmark < 0) & priors.line_valid
+                               & np.isfinite(priors.line_endpoints).reshape(-1, 6).all(axis=1))
+        ends = se3.transform_points(T, priors.line_endpoints[new_l].reshape(-1, 3)).reshape(-1, 2, 3)
+        ids = self.map.add_lines(ends, feats.line_descriptors[new_l], np.ones(len(new_l), bool), kf_id, new_l,
+                                 feats.segments[new_l])
+        assoc.line_landmark[new_l] = ids
+        return len(new_p), len(new_l)
+
+    def _landmarks_from_triangulation(self, kf_id: int, state: _FrameState) -> int:
+        """No-depth-priors ablation: triangulate keypoints tracked since the previous keyframe."""
+        last = self._last_kf
+        if last is None:
+            return 0
+        j = np.flatnonzero((state.assoc.point_landmark < 0) & (state.kf_track >= 0))
+        k = state.kf_track[j]
+        k_free = last.assoc.point_landmark[k] < 0  # a keypoint already tied to a landmark lost it as an outlier
+        j, k = j[k_free], k[k_free]
+        uv0, uv1 = last.features.keypoints[k].astype(float), state.features.keypoints[j].astype(float)
+        pw, ok = triangulate_tracks(self.K, last.T_world_cam, uv0, state.T_world_cam, uv1,
+                                    self.cfg.tracking.outlier_reproj_px)
+        j, k, pw = j[ok], k[ok], pw[ok]
+        ids = self.map.add_points(pw, state.features.descriptors[j], np.zeros(len(j), bool), kf_id, j,
+                                  state.features.keypoints[j])
+        self.map.add_point_observations(ids, self._last_kf_id, k, uv0[ok])
+        state.assoc.point_landmark[j] = ids
+        return len(j)
+
+    # ---- result ------------------------------------------------------------------------------------------
+    def _result(self, frame, state, status, msg, reason, n_pm, n_lm, corr, inliers, n_new, keyframe, timings):
+        if inliers is None or status == REINITIALISED:
+            inliers = (np.zeros(len(corr["uv"]), bool), np.zeros(len(corr["segs"]), bool))
+        p_in, l_in = inliers
+        return FrontendResult(
+            frame_index=frame.index, T_world_cam=state.T_world_cam.copy(), n_point_matches=n_pm,
+            n_line_matches=n_lm, point_inliers=corr["p_cur"][p_in], line_inliers=corr["l_cur"][l_in],
+            is_keyframe=keyframe is not None, ok=status != REINITIALISED, message=msg,
+            T_world_cam0=state.T_world_cam @ self._T_cam_cam0, status=status, keyframe_reason=reason,
+            point_uv=corr["uv"], point_landmark=corr["p_lm"], point_inlier=p_in, line_segments=corr["segs"],
+            line_landmark=corr["l_lm"], line_inlier=l_in, n_new_points=n_new[0], n_new_lines=n_new[1],
+            association=FrameAssociation(state.assoc.point_landmark.copy(), state.assoc.line_landmark.copy()),
+            features=state.features, keyframe=keyframe, timings=dict(timings),
+        )
+
+
+def _no_matches() -> Matches:
+    return Matches(np.zeros((0, 2), np.int64), np.zeros(0))

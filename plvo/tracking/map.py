@@ -1,0 +1,378 @@
+"""The landmark map shared by the tracker and the back end: point and line landmarks, keyframe poses, observations.
+
+Everything lives in growable numpy arrays indexed by landmark id (ids are never reused; removal clears the
+`alive` flag), so the hot paths (gathering the positions of the landmarks seen in the previous frame) are single
+fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement).
+
+Thread safety: every method takes `self.lock` (an RLock). The back end writes refined positions and keyframe
+poses in one call, `apply_update`, which bumps `version`; readers that need several consistent arrays either
+hold `with map.lock:` or take `snapshot()`, a frozen copy stamped with the version it was taken at.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+_DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
+
+
+class _Columns:
+    """Named numpy columns that grow together by doubling; rows [0, n) are in use."""
+
+    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
+        self._spec = spec
+        self.n = 0
+        self.cols = {k: np.full((16, *shape), fill, dtype=dt) for k, (shape, dt, fill) in spec.items()}
+
+    def append(self, **values: np.ndarray) -> np.ndarray:
+        k = len(next(iter(values.values())))
+        cap = len(next(iter(self.cols.values())))
+        if self.n + k > cap:
+            new_cap = max(2 * cap, self.n + k)
+            for name, (shape, dt, fill) in self._spec.items():
+                grown = np.full((new_cap, *shape), fill, dtype=dt)
+                grown[: self.n] = self.cols[name][: self.n]
+                self.cols[name] = grown
+        rows = np.arange(self.n, self.n + k)
+        for name in self._spec:
+            if name in values:
+                self.cols[name][rows] = values[name]
+        self.n += k
+        return rows
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.cols[name][: self.n]
+
+
+def _point_store() -> _Columns:
+    return _Columns({
+        "position": ((3,), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
+        "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
+        "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
+    })
+
+
+def _line_store() -> _Columns:
+    return _Columns({
+        "endpoints": ((2, 3), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
+        "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
+        "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
+    })
+
+
+def _obs_store(meas_shape: tuple[int, ...]) -> _Columns:
+    return _Columns({
+        "landmark": ((), np.int64, -1), "keyframe": ((), np.int64, -1), "feature": ((), np.int64, -1),
+        "measurement": (meas_shape, np.float64, np.nan),
+    })
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """A consistent copy of the map at `version`.
+
+    point_ids (P,), point_positions (P,3) world, point_has_depth (P,); line_ids (L,), line_endpoints (L,2,3)
+    world, line_has_depth (L,); keyframe_ids (F,), keyframe_frames (F,) dataset frame index, keyframe_T_world_cam
+    (F,4,4). Only live landmarks are included.
+    """
+
+    version: int
+    point_ids: np.ndarray
+    point_positions: np.ndarray
+    point_has_depth: np.ndarray
+    line_ids: np.ndarray
+    line_endpoints: np.ndarray
+    line_has_depth: np.ndarray
+    keyframe_ids: np.ndarray
+    keyframe_frames: np.ndarray
+    keyframe_T_world_cam: np.ndarray
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Observations of one landmark kind: landmark (K,), keyframe (K,), feature index (K,), measurement (K,2)
+    pixels for points or (K,4) segments for lines."""
+
+    landmark: np.ndarray
+    keyframe: np.ndarray
+    feature: np.ndarray
+    measurement: np.ndarray
+
+
+class LandmarkMap:
+    """Point and line landmarks in the world frame, keyframe poses T_world_cam, and keyframe observations."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.version = 0
+        self._pts = _point_store()
+        self._lines = _line_store()
+        self._pobs = _obs_store((2,))
+        self._lobs = _obs_store((4,))
+        self._kfs = _Columns({"frame": ((), np.int64, -1), "T_world_cam": ((4, 4), np.float64, np.nan)})
+
+    # ---- sizes -------------------------------------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        with self.lock:
+            return int(self._pts["alive"].sum())
+
+    @property
+    def n_lines(self) -> int:
+        with self.lock:
+            return int(self._lines["alive"].sum())
+
+    @property
+    def n_keyframes(self) -> int:
+        return self._kfs.n
+
+    # ---- keyframes ---------------------------------------------------------------------------------------
+    def add_keyframe(self, frame_index: int, T_world_cam: np.ndarray) -> int:
+        """Register a keyframe with its (4,4) pose; returns its id (0, 1, ...)."""
+        with self.lock:
+            row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=np.asarray(T_world_cam)[None])
+            self.version += 1
+            return int(row[0])
+
+    def keyframe_pose(self, kf_id: int) -> np.ndarray:
+        """(4,4) T_world_cam of keyframe kf_id (a copy)."""
+        with self.lock:
+            return self._kfs["T_world_cam"][kf_id].copy()
+
+    def keyframe_frame(self, kf_id: int) -> int:
+        with self.lock:
+            return int(self._kfs["frame"][kf_id])
+
+    # ---- adding landmarks --------------------------------------------------------------------------------
+    def add_points(self, positions: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
+                   feature_idx: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(n,3) world positions, (n,32) ORB, (n,) bool, keyframe id, (n,) keypoint indices, (n,2) px -> (n,) ids.
+
+        Each new landmark gets its first observation in keyframe kf_id.
+        """
+        positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+        n = len(positions)
+        with self.lock:
+            ids = self._pts.append(
+                position=positions, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
+                has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
+                first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
+            )
+            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2))
+            return ids
+
+    def add_lines(self, endpoints: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
+                  segment_idx: np.ndarray, segments: np.ndarray) -> np.ndarray:
+        """(n,2,3) world endpoints, (n,32) LBD, (n,) bool, keyframe id, (n,) segment indices, (n,4) -> (n,) ids."""
+        endpoints = np.asarray(endpoints, dtype=float).reshape(-1, 2, 3)
+        n = len(endpoints)
+        with self.lock:
+            ids = self._lines.append(
+                endpoints=endpoints, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
+                has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
+                first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
+            )
+            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(n, 4))
+            return ids
+
+    def add_point_observations(self, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray, uv: np.ndarray) -> None:
+        """Record that point landmarks ids (k,) were seen in keyframe kf_id at keypoints feature_idx, (k,2) px."""
+        with self.lock:
+            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2))
+
+    def add_line_observations(self, ids: np.ndarray, kf_id: int, segment_idx: np.ndarray,
+                              segments: np.ndarray) -> None:
+        """Record that line landmarks ids (k,) were seen in keyframe kf_id as segments (k,4)."""
+        with self.lock:
+            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4))
+
+    def _add_obs(self, store: _Columns, obs: _Columns, ids, kf_id, feature_idx, meas) -> None:
+        k = len(ids)
+        if k == 0:
+            return
+        obs.append(landmark=ids, keyframe=np.full(k, kf_id), feature=np.asarray(feature_idx).reshape(k),
+                   measurement=meas)
+        np.add.at(store.cols["n_obs"], ids, 1)
+        self.version += 1
+
+    # ---- reading -----------------------------------------------------------------------------------------
+    def point_positions(self, ids: np.ndarray) -> np.ndarray:
+        """(k,) ids -> (k,3) world positions; NaN for removed landmarks."""
+        with self.lock:
+            ids = np.asarray(ids, dtype=np.int64)
+            out = self._pts["position"][ids].copy()
+            out[~self._pts["alive"][ids]] = np.nan
+            return out
+
+    def line_endpoints(self, ids: np.ndarray) -> np.ndarray:
+        """(k,) ids -> (k,2,3) world endpoints; NaN for removed landmarks."""
+        with self.lock:
+            ids = np.asarray(ids, dtype=np.int64)
+            out = self._lines["endpoints"][ids].copy()
+            out[~self._lines["alive"][ids]] = np.nan
+            return out
+
+    def point_alive(self, ids: np.ndarray) -> np.ndarray:
+        with self.lock:
+            return self._pts["alive"][np.asarray(ids, dtype=np.int64)].copy()
+
+    def line_alive(self, ids: np.ndarray) -> np.ndarray:
+        with self.lock:
+            return self._lines["alive"][np.asarray(ids, dtype=np.int64)].copy()
+
+    def point_descriptors(self, ids: np.ndarray) -> np.ndarray:
+        with self.lock:
+            return self._pts["descriptor"][np.asarray(ids, dtype=np.int64)].copy()
+
+    def line_descriptors(self, ids: np.ndarray) -> np.ndarray:
+        with self.lock:
+            return self._lines["descriptor"][np.asarray(ids, dtype=np.int64)].copy()
+
+    def point_observations(self, ids: np.ndarray | None = None) -> Observations:
+        """Observations of the given point landmarks (all when None) that are still alive."""
+        with self.lock:
+            return self._observations(self._pts, self._pobs, ids)
+
+    def line_observations(self, ids: np.ndarray | None = None) -> Observations:
+        with self.lock:
+            return self._observations(self._lines, self._lobs, ids)
+
+    @staticmethod
+    def _observations(store: _Columns, obs: _Columns, ids) -> Observations:
+        lm = obs["landmark"]
+        keep = store["alive"][lm] if len(lm) else np.zeros(0, bool)
+        if ids is not None:
+            keep &= np.isin(lm, np.asarray(ids, dtype=np.int64))
+        return Observations(lm[keep].copy(), obs["keyframe"][keep].copy(), obs["feature"][keep].copy(),
+                            obs["measurement"][keep].copy())
+
+    def mark_seen(self, point_ids: np.ndarray, line_ids: np.ndarray, frame_index: int) -> None:
+        """Stamp the landmarks tracked in frame_index (used to cull landmarks nobody sees any more)."""
+        with self.lock:
+            self._pts.cols["last_seen_frame"][np.asarray(point_ids, dtype=np.int64)] = frame_index
+            self._lines.cols["last_seen_frame"][np.asarray(line_ids, dtype=np.int64)] = frame_index
+
+    # ---- removing and updating ---------------------------------------------------------------------------
+    def remove_points(self, ids: np.ndarray) -> None:
+        with self.lock:
+            self._pts.cols["alive"][np.asarray(ids, dtype=np.int64)] = False
+            self.version += 1
+
+    def remove_lines(self, ids: np.ndarray) -> None:
+        with self.lock:
+            self._lines.cols["alive"][np.asarray(ids, dtype=np.int64)] = False
+            self.version += 1
+
+    def cull(self, frame_index: int, max_unseen_frames: int) -> tuple[int, int]:
+        """Remove landmarks not tracked in the last max_unseen_frames frames; returns (points, lines) removed."""
+        with self.lock:
+            counts = []
+            for store in (self._pts, self._lines):
+                stale = store["alive"] & (store["last_seen_frame"] < frame_index - max_unseen_frames)
+                store.cols["alive"][: store.n][stale] = False
+                counts.append(int(stale.sum()))
+            if any(counts):
+                self.version += 1
+            return counts[0], counts[1]
+
+    def apply_update(self, point_ids=None, point_positions=None, line_ids=None, line_endpoints=None,
+                     keyframe_ids=None, keyframe_T_world_cam=None) -> int:
+        """Back-end write, atomic for readers: (k,) ids with (k,3) positions, (l,) ids with (l,2,3) endpoints,
+        (f,) keyframe ids with (f,4,4) poses, all world. Removed landmarks are skipped. Returns the new version."""
+        with self.lock:
+            if point_ids is not None and len(point_ids):
+                ids = np.asarray(point_ids, dtype=np.int64)
+                ok = self._pts["alive"][ids]
+                self._pts.cols["position"][ids[ok]] = np.asarray(point_positions, float).reshape(-1, 3)[ok]
+            if line_ids is not None and len(line_ids):
+                ids = np.asarray(line_ids, dtype=np.int64)
+                ok = self._lines["alive"][ids]
+                self._lines.cols["endpoints"][ids[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
+            if keyframe_ids is not None and len(keyframe_ids):
+                ids = np.asarray(keyframe_ids, dtype=np.int64)
+                self._kfs.cols["T_world_cam"][ids] = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
+            self.version += 1
+            return self.version
+
+    def snapshot(self) -> MapSnapshot:
+        """A frozen, consistent copy of the live landmarks and all keyframe poses."""
+        with self.lock:
+            pa, la = self._pts["alive"], self._lines["alive"]
+            return MapSnapshot(
+                version=self.version,
+                point_ids=np.flatnonzero(pa), point_positions=self._pts["position"][pa].copy(),
+                point_has_depth=self._pts["has_depth"][pa].copy(),
+                line_ids=np.flatnonzero(la), line_endpoints=self._lines["endpoints"][la].copy(),
+                line_has_depth=self._lines["has_depth"][la].copy(),
+                keyframe_ids=np.arange(self._kfs.n), keyframe_frames=self._kfs["frame"].copy(),
+                keyframe_T_world_cam=self._kfs["T_world_cam"].copy(),
+            )
+
+
+@dataclass(frozen=True)
+class FrameAssociation:
+    """Which landmark each feature of one frame is tracked to: point_landmark (N,) and line_landmark (M,) ids,
+    -1 where none (one entry per keypoint / segment of the frame's FeatureSet)."""
+
+    point_landmark: np.ndarray
+    line_landmark: np.ndarray
+
+    @staticmethod
+    def empty(n_points: int, n_lines: int) -> "FrameAssociation":
+        return FrameAssociation(np.full(n_points, -1, np.int64), np.full(n_lines, -1, np.int64))
+
+    @property
+    def n_points(self) -> int:
+        return int((self.point_landmark >= 0).sum())
+
+    @property
+    def n_lines(self) -> int:
+        return int((self.line_landmark >= 0).sum())
+
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(k,32) uint8, (k,32) uint8 -> (k,) row-wise Hamming distances."""
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1)
+
+
+def search_by_projection(uv_landmarks: np.ndarray, desc_landmarks: np.ndarray, keypoints: np.ndarray,
+                         descriptors: np.ndarray, free: np.ndarray, radius_px: float, max_hamming: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks projected to (L,2) px with (L,32) descriptors, a frame's (N,2) keypoints, (N,32) descriptors and
+    (N,) bool free (not yet associated) -> (k,) landmark rows and (k,) keypoint indices, one-to-one.
+
+    Each landmark takes the free keypoint with the smallest Hamming distance (<= max_hamming) within radius_px
+    of its projection; conflicts go to the smaller distance.
+    """
+    from scipy.spatial import cKDTree
+
+    ok = np.flatnonzero(np.isfinite(uv_landmarks).all(axis=1))
+    cand = np.flatnonzero(free)
+    if len(ok) == 0 or len(cand) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    near = cKDTree(keypoints[cand]).query_ball_point(uv_landmarks[ok], radius_px)
+    counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+    rows = np.repeat(ok, counts)
+    kps = cand[np.fromiter((j for n in near for j in n), dtype=np.int64, count=int(counts.sum()))]
+    if len(rows) == 0:
+        return rows, kps
+    dist = hamming(desc_landmarks[rows], descriptors[kps])
+    keep = dist <= max_hamming
+    rows, kps, dist = rows[keep], kps[keep], dist[keep]
+    order = np.argsort(dist, kind="stable")
+    rows, kps = rows[order], kps[order]
+    _, first_row = np.unique(rows, return_index=True)  # best keypoint of each landmark
+    rows, kps = rows[first_row], kps[first_row]
+    dist_sorted = hamming(desc_landmarks[rows], descriptors[kps])
+    order = np.argsort(dist_sorted, kind="stable")
+    rows, kps = rows[order], kps[order]
+    _, first_kp = np.unique(kps, return_index=True)  # and the best landmark of each keypoint
+    return rows[first_kp], kps[first_kp]

@@ -1,0 +1,178 @@
+"""LandmarkMap storage, observations, back-end updates under concurrency; KeyframePolicy; two-view triangulation."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from plvo.config import TrackingConfig
+from plvo.geometry import se3
+from plvo.tracking.keyframes import KeyframePolicy, triangulate_tracks
+from plvo.tracking.map import FrameAssociation, LandmarkMap
+
+K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.2], [0.0, 0.0, 1.0]])
+
+
+def _desc(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (n, 32), dtype=np.uint8)
+
+
+def _map_with_landmarks(n_pts=40, n_lines=10):
+    m = LandmarkMap()
+    kf = m.add_keyframe(7, np.eye(4))
+    pos = np.random.default_rng(1).normal(size=(n_pts, 3))
+    pids = m.add_points(pos, _desc(n_pts), np.ones(n_pts, bool), kf, np.arange(n_pts), np.zeros((n_pts, 2)))
+    ends = np.random.default_rng(2).normal(size=(n_lines, 2, 3))
+    lids = m.add_lines(ends, _desc(n_lines, 3), np.zeros(n_lines, bool), kf, np.arange(n_lines),
+                       np.zeros((n_lines, 4)))
+    return m, kf, pos, pids, ends, lids
+
+
+def test_add_grow_read_and_remove():
+    m, kf, pos, pids, ends, lids = _map_with_landmarks(40, 10)
+    assert np.array_equal(pids, np.arange(40)) and np.array_equal(lids, np.arange(10))
+    # Growing past the initial capacity (16) kept the earlier rows.
+    more = m.add_points(np.ones((100, 3)), _desc(100), np.zeros(100, bool), kf, np.arange(100), np.zeros((100, 2)))
+    assert np.array_equal(more, np.arange(40, 140))
+    assert np.allclose(m.point_positions(pids), pos) and np.allclose(m.line_endpoints(lids), ends)
+    assert m.n_points == 140 and m.n_lines == 10 and m.keyframe_frame(kf) == 7
+    m.remove_points(pids[:5])
+    m.remove_lines(lids[-1:])
+    assert np.isnan(m.point_positions(pids[:5])).all() and np.isfinite(m.point_positions(pids[5:])).all()
+    assert not m.point_alive(pids[:5]).any() and m.n_points == 135 and m.n_lines == 9
+    snap = m.snapshot()
+    assert len(snap.point_ids) == 135 and 0 not in snap.point_ids and snap.line_endpoints.shape == (9, 2, 3)
+    assert snap.keyframe_T_world_cam.shape == (1, 4, 4)
+
+
+def test_observations_and_removed_landmarks_drop_out():
+    m, kf, pos, pids, ends, lids = _map_with_landmarks(20, 5)
+    kf2 = m.add_keyframe(10, se3.exp(np.array([0, 0, 1.0, 0, 0, 0])))
+    m.add_point_observations(pids[:3], kf2, np.array([5, 6, 7]), np.array([[1.0, 2], [3, 4], [5, 6]]))
+    m.add_line_observations(lids[:2], kf2, np.array([0, 1]), np.ones((2, 4)))
+    obs = m.point_observations(pids[:3])
+    assert len(obs.landmark) == 6 and set(obs.keyframe) == {kf, kf2}
+    assert np.allclose(obs.measurement[obs.keyframe == kf2], [[1, 2], [3, 4], [5, 6]])
+    m.remove_points(pids[:1])
+    assert len(m.point_observations().landmark) == 19 + 2
+    assert len(m.line_observations().landmark) == 5 + 2
+
+
+def test_apply_update_is_atomic_for_snapshot_readers():
+    """A writer thread moves all landmarks and keyframe poses together; readers never see a half update."""
+    m, kf, pos, pids, ends, lids = _map_with_landmarks(200, 50)
+    stop = threading.Event()
+    torn = []
+    v0 = m.version
+
+    def writer():
+        for k in range(1, 300):
+            T = se3.exp(np.array([0, 0, float(k), 0, 0, 0]))
+            m.apply_update(pids, np.full((200, 3), float(k)), lids, np.full((50, 2, 3), float(k)), [kf], T[None])
+        stop.set()
+
+    def reader():
+        while not stop.is_set():
+            s = m.snapshot()
+            vals = {float(s.point_positions[0, 0]), float(s.point_positions[-1, 2]),
+                    float(s.line_endpoints[-1, 1, 2])}
+            if s.version > v0:  # after the first update every value must be the same k, pose included
+                vals.add(float(s.keyframe_T_world_cam[0, 2, 3]))
+                if len(vals) != 1:
+                    torn.append(vals)
+
+    threads = [threading.Thread(target=writer), threading.Thread(target=reader)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    assert not torn
+    assert np.allclose(m.point_positions(pids), 299.0) and m.keyframe_pose(kf)[2, 3] == pytest.approx(299.0)
+
+
+def test_apply_update_skips_removed_landmarks_and_cull():
+    m, kf, pos, pids, ends, lids = _map_with_landmarks(10, 4)
+    m.remove_points(pids[:2])
+    m.apply_update(point_ids=pids, point_positions=np.zeros((10, 3)))
+    assert np.isnan(m.point_positions(pids[:2])).all() and np.allclose(m.point_positions(pids[2:]), 0)
+    m.mark_seen(pids[2:5], lids[:1], frame_index=20)
+    removed = m.cull(frame_index=20, max_unseen_frames=5)  # the rest were last seen at frame 7
+    assert removed == (5, 3)
+    assert m.point_alive(pids).tolist() == [False, False, True, True, True] + [False] * 5
+
+
+def test_frame_association_counts():
+    a = FrameAssociation.empty(5, 3)
+    a.point_landmark[[1, 3]] = [10, 11]
+    assert a.n_points == 2 and a.n_lines == 0
+
+
+def _T(z=0.0, yaw_deg=0.0):
+    return se3.exp(np.array([0, 0, z, 0, np.radians(yaw_deg), 0]))
+
+
+def test_keyframe_policy_interval_and_early_reasons():
+    cfg = TrackingConfig(keyframe_every=3, min_tracked_landmarks=60, max_rotation_deg=10.0)
+    p = KeyframePolicy(cfg)
+    d = p.decide(0, _T(), 0)
+    assert d.is_keyframe and d.reason == "first frame"
+    p.accept(0, _T())
+    made = []
+    for i in range(1, 10):
+        d = p.decide(i, _T(i), 200)
+        if d.is_keyframe:
+            made.append(i)
+            p.accept(i, _T(i))
+    assert made == [3, 6, 9]
+    d = p.decide(10, _T(10), 59)
+    assert d.is_keyframe and d.reason.startswith("few tracked")
+    d = p.decide(10, _T(10, yaw_deg=11.0), 200)
+    assert d.is_keyframe and d.reason.startswith("large rotation") and d.rotation_deg == pytest.approx(11.0)
+    assert not p.decide(10, _T(10, yaw_deg=9.0), 200).is_keyframe
+    assert p.decide(10, _T(10), 200, lost=True).reason.startswith("tracking lost")
+
+
+def test_keyframe_policy_max_gap_caps_interval():
+    p = KeyframePolicy(TrackingConfig(keyframe_every=10, keyframe_max_gap=4))
+    p.accept(0, _T())
+    assert [p.decide(i, _T(i), 500).is_keyframe for i in range(1, 5)] == [False, False, False, True]
+
+
+def test_triangulate_tracks_recovers_points_and_rejects_bad_ones():
+    rng = np.random.default_rng(3)
+    pw = np.c_[rng.uniform(-8, 8, 50), rng.uniform(-2, 1, 50), rng.uniform(8, 30, 50)]
+    T0, T1 = _T(0.0), se3.exp(np.array([0.5, 0.0, 3.0, 0.0, 0.05, 0.0]))
+    uv0 = (se3.transform_points(se3.inv(T0), pw) @ K.T)
+    uv0 = uv0[:, :2] / uv0[:, 2:]
+    uv1 = (se3.transform_points(se3.inv(T1), pw) @ K.T)
+    uv1 = uv1[:, :2] / uv1[:, 2:]
+    uv1[:5] += 20.0  # wrong matches
+    est, ok = triangulate_tracks(K, T0, uv0, T1, uv1, max_reproj_px=2.0)
+    assert not ok[:5].any()
+    # Points near the focus of expansion have too little parallax to keep; the rest must be exact.
+    assert ok[5:].mean() > 0.7
+    assert np.allclose(est[ok], pw[ok], atol=1e-6)
+
+
+def test_search_by_projection_is_one_to_one_and_respects_radius_and_hamming():
+    from plvo.tracking.map import hamming, search_by_projection
+
+    desc = _desc(4, 7)
+    kp = np.array([[100.0, 100.0], [103.0, 100.0], [300.0, 50.0], [500.0, 200.0]])
+    kp_desc = desc.copy()
+    kp_desc[1] = desc[0]  # keypoint 1 looks exactly like landmark 0, keypoint 0 slightly less
+    kp_desc[0, :2] ^= 0xFF
+    uv = np.array([[101.0, 100.0], [102.0, 101.0], [300.0, 70.0], [np.nan, np.nan]])
+    lm_desc = desc.copy()
+    lm_desc[1] = kp_desc[0]
+    free = np.ones(4, bool)
+    rows, kps = search_by_projection(uv, lm_desc, kp, kp_desc, free, radius_px=8.0, max_hamming=64)
+    got = dict(zip(rows.tolist(), kps.tolist()))
+    # Landmark 0 takes its exact twin (keypoint 1), landmark 1 its own (keypoint 0); landmark 2 is 20 px off.
+    assert got == {0: 1, 1: 0}
+    assert hamming(lm_desc[:1], kp_desc[1:2])[0] == 0
+    free[1] = False
+    rows, kps = search_by_projection(uv, lm_desc, kp, kp_desc, free, radius_px=8.0, max_hamming=10)
+    assert dict(zip(rows.tolist(), kps.tolist())) == {1: 0}
