@@ -130,6 +130,9 @@ class BackendConfig:
     window_keyframes: int = 8
     sigma_point_px: float = 0.1  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)
     sigma_line: float = 0.2  # paper, III: Sigma^L = 0.2 I
+    # The paper sets the relative-pose information to zeta I; zeta is dimensionless, so a base standard deviation
+    # (metres / radians) scales it against the reprojection factors: information = zeta / sigma^2.
+    sigma_relative_pose: float = 0.05
     huber_point: float = 2.0
     huber_line: float = 2.0
     iterations: int = 10
@@ -155,7 +158,7 @@ class LoopConfig:
     line_max_hamming: int = 80
     ransac_px: float = 3.0  # PnP/PnL RANSAC and inlier threshold between the keyframes (px)
     use_registration: bool = True  # refine the PnP/PnL pose by scan registration when scans are given
-    min_off_plane: int = 0  # PnP/PnL inliers that must lie off their dominant plane (repeated ground textures)
+    min_off_plane: int = 10  # PnP/PnL inliers (3D) off their dominant plane: rejects tiled ground textures
     plane_tolerance_m: float = 0.3
     odom_sigma_rot: float = 0.01  # pose-graph sigmas of a keyframe-to-keyframe edge (rad, m)
     odom_sigma_trans: float = 0.05

@@ -16,3 +16,33 @@ def kitti_root() -> Path:
     if not (KITTI_ROOT / "sequences" / "04" / "calib.txt").is_file():
         pytest.skip(f"real KITTI frames not found at {KITTI_ROOT} (see ../shared/data/README.md)")
     return KITTI_ROOT
+
+
+# --- synthetic town (plvo.data.synth) -------------------------------------------------------------------------
+
+SYNTH_SEQ_FRAMES = 20
+
+
+@pytest.fixture(scope="session")
+def synth_sequence_factory(tmp_path_factory):
+    """Callable (n_frames, seed=0, **generate_sequence kwargs) -> root of a synthetic sequence '00' in the KITTI
+    layout, generated once per session for each distinct set of arguments (e.g. a longer or a loop sequence)."""
+    from plvo.data.synth import generate_sequence
+
+    made: dict[tuple, Path] = {}
+
+    def make(n_frames: int, seed: int = 0, **kwargs) -> Path:
+        key = (n_frames, seed, tuple(sorted(kwargs.items())))
+        if key not in made:
+            root = tmp_path_factory.mktemp(f"synth_{n_frames}f_seed{seed}")
+            made[key] = generate_sequence(root, "00", n_frames=n_frames, seed=seed, **kwargs)
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def synth_seq(synth_sequence_factory) -> Path:
+    """Root (KITTI odometry layout, sequence '00') of a 20-frame synthetic town sequence at 10 m/s, seed 0, with
+    per-pixel depth in sequences/00/gt/depth; generated once per session."""
+    return synth_sequence_factory(SYNTH_SEQ_FRAMES, seed=0, write_depth=True)

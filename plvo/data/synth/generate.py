@@ -1,0 +1,258 @@
+"""Write synthetic town sequences in the KITTI odometry layout, with ground truth, atomically and deterministically.
+
+Layout under `out_root` (what pykitti.odometry and plvo.data.kitti read):
+  sequences/NN/image_0/NNNNNN.png   8-bit grey, 1241x376, KITTI seq 00's cam0
+  sequences/NN/velodyne/NNNNNN.bin  float32 x, y, z, reflectance in the Velodyne frame
+  sequences/NN/calib.txt            P0..P3 and Tr, KITTI's seq 00 values;  sequences/NN/times.txt
+  poses/NN.txt                      T_world_cam0 (3x4 row-major), world = cam0 of frame 0
+  sequences/NN/gt/edges.npy         (E,2,3) straight 3D edges of the town in the world frame; edge_kind.npy (E,)
+  sequences/NN/gt/depth/NNNNNN.npy  (H,W) float32 z-depth of cam0 (inf: sky), only with write_depth
+  sequences/NN/gt/scene.json        settings, seed, sun, exposure gains, route and still frames
+Everything is staged in a hidden directory beside the target and renamed into place when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from plvo.data.synth import path as paths
+from plvo.data.synth import sensors
+from plvo.data.synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE
+from plvo.data.synth.render import Renderer, sun_direction
+from plvo.data.synth.textures import build_atlas
+from plvo.data.synth.town import build_town
+from plvo.errors import SynthError
+
+log = logging.getLogger(__name__)
+
+GENERATOR_VERSION = 1  # bump when the output for a seed changes (invalidates caches)
+MAX_ROUTE_M = 20_000.0
+MAX_FRAMES = 50_000
+EXPOSURE_PERIOD_FRAMES = 40
+RENDER_THREADS = 2
+ROUTE_LOOKAHEAD_M = 100.0  # the town is built this far past the last frame, for what the camera sees ahead
+
+
+@dataclass(frozen=True)
+class SynthSettings:
+    """What determines a sequence's content. Validated by `check()`; raises SynthError naming the setting."""
+
+    n_frames: int = 300
+    seed: int = 0
+    speed_mps: float = 10.0
+    loop: bool = False
+    stops: bool = False
+    exposure_change: float = 0.0  # amplitude of the relative gain swing between frames (0: constant exposure)
+    write_depth: bool = False
+
+    def check(self) -> None:
+        if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, (int, np.integer)):
+            raise SynthError(f"n_frames: expected an integer, got {self.n_frames!r}")
+        if not 2 <= self.n_frames <= MAX_FRAMES:
+            raise SynthError(f"n_frames: must be between 2 and {MAX_FRAMES}, got {self.n_frames}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2**32:
+            raise SynthError(f"seed: expected an integer in [0, 2^32), got {self.seed!r}")
+        for name in ("speed_mps", "exposure_change"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise SynthError(f"{name}: expected a number, got {value!r}")
+        if not np.isfinite(self.speed_mps) or not 1.0 <= self.speed_mps <= 30.0:
+            raise SynthError(f"speed_mps: must be between 1 and 30 m/s (KITTI: 5-15), got {self.speed_mps}")
+        if self.route_length_m > MAX_ROUTE_M:
+            raise SynthError(
+                f"n_frames x speed_mps: the route would be {self.route_length_m / 1000:.1f} km, "
+                f"more than {MAX_ROUTE_M / 1000:.0f} km"
+            )
+        if not np.isfinite(self.exposure_change) or not 0.0 <= self.exposure_change <= 0.5:
+            raise SynthError(f"exposure_change: must be between 0 and 0.5, got {self.exposure_change}")
+
+    @property
+    def route_length_m(self) -> float:
+        return (self.n_frames - 1) * self.speed_mps * sensors.FRAME_DT
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Planned motion. T_world_cam: (N,4,4) cam0 poses, world = cam0 of frame 0; T_town_world: (4,4);
+    s: (N,) distance driven (m); route: (M,2) street-centre polyline in the town frame; lap_m: loop lap or 0."""
+
+    T_world_cam: np.ndarray
+    T_town_world: np.ndarray
+    s: np.ndarray
+    route: np.ndarray
+    lap_m: float
+
+
+def plan_trajectory(settings: SynthSettings) -> Trajectory:
+    """The car's cam0 poses for these settings (no rendering); raises SynthError for impossible settings."""
+    settings.check()
+    grid = paths.make_grid(settings.seed)
+    s = paths.arc_lengths(settings.n_frames, settings.speed_mps, settings.stops)
+    needed = float(s[-1]) + ROUTE_LOOKAHEAD_M
+    if settings.loop:
+        route, lap = paths.loop_route(grid, float(s[-1]))
+    else:
+        rng = np.random.default_rng(np.random.SeedSequence([settings.seed, 8]))
+        route, lap = paths.staircase_route(grid, needed + 60.0, rng), 0.0
+    lane = paths.LanePath(route)
+    T_town_cam = paths.camera_poses(lane, s)
+    T_town_world = T_town_cam[0].copy()
+    T_world_cam = np.linalg.inv(T_town_world)[None] @ T_town_cam
+    return Trajectory(T_world_cam, T_town_world, s, route, lap)
+
+
+def exposure_gains(settings: SynthSettings) -> np.ndarray:
+    """(N,) camera gain per frame: 1 +- exposure_change, a slow swing with a seeded phase."""
+    phase = np.random.default_rng(np.random.SeedSequence([settings.seed, 9])).uniform(0.0, 2.0 * np.pi)
+    i = np.arange(settings.n_frames)
+    return 1.0 + settings.exposure_change * np.sin(2.0 * np.pi * i / EXPOSURE_PERIOD_FRAMES + phase)
+
+
+def _write_text_files(seq_dir: Path, poses_file: Path, traj: Trajectory) -> None:
+    (seq_dir / "calib.txt").write_text(sensors.KITTI_CALIB_00_TEXT)
+    times = np.arange(len(traj.s)) * sensors.FRAME_DT
+    (seq_dir / "times.txt").write_text("".join(f"{t:.6e}\n" for t in times))
+    rows = traj.T_world_cam[:, :3, :].reshape(len(traj.s), 12)
+    poses_file.write_text("".join(" ".join(f"{x:.9e}" for x in row) + "\n" for row in rows))
+
+
+def _plain(value):
+    """JSON fallback for numpy scalars (settings may arrive as numpy integers or floats)."""
+    return value.item()
+
+
+def _write_ground_truth(gt_dir: Path, settings: SynthSettings, traj: Trajectory, town, gains) -> None:
+    T_world_town = np.linalg.inv(traj.T_town_world)
+    e = town.edges.reshape(-1, 3) @ T_world_town[:3, :3].T + T_world_town[:3, 3]
+    np.save(gt_dir / "edges.npy", e.reshape(-1, 2, 3))
+    np.save(gt_dir / "edge_kind.npy", town.edge_kind)
+    still = np.flatnonzero(np.diff(traj.s) == 0.0) + 1
+    scene = {
+        "generator": "plvo.data.synth",
+        "generator_version": GENERATOR_VERSION,
+        "settings": asdict(settings),
+        "frames": {"dt_s": sensors.FRAME_DT, "still_frames": still.tolist(), "distance_m": traj.s.tolist()},
+        "camera": {"height_m": sensors.CAMERA_HEIGHT_M, "lane_offset_m": paths.LANE_OFFSET_M,
+                   "exposure_gains": [round(float(g), 9) for g in gains]},
+        "lidar": {"elevations_deg": sensors.LIDAR_ELEVATIONS_DEG.tolist(),
+                  "azimuth_steps": sensors.LIDAR_AZIMUTH_STEPS, "max_range_m": sensors.LIDAR_MAX_RANGE_M,
+                  "min_range_m": sensors.LIDAR_MIN_RANGE_M, "range_noise_m": sensors.LIDAR_RANGE_NOISE_M},
+        "town": {"T_town_world": traj.T_town_world.tolist(), "route_town_xy": traj.route.tolist(),
+                 "loop_lap_m": traj.lap_m, "sun_town": sun_direction(settings.seed).tolist(),
+                 "n_triangles": int(len(town.triangles)), "n_edges": int(len(town.edges))},
+        "edges": {"frame": "world (cam0 of frame 0)", "kind": {"geometric": EDGE_GEOMETRIC, "texture": EDGE_TEXTURE}},
+        "depth": {"written": settings.write_depth, "kind": "cam0 z-depth in metres, inf where no surface"},
+    }
+    (gt_dir / "scene.json").write_text(json.dumps(scene, indent=1, sort_keys=True, default=_plain))
+
+
+def _render_frames(stage_seq: Path, settings: SynthSettings, traj: Trajectory, renderer: Renderer, gains,
+                   progress: Callable[[int, int], None] | None) -> None:
+    T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
+
+    def frame(i: int) -> None:
+        rng = np.random.default_rng(np.random.SeedSequence([settings.seed, 5, i]))
+        image, depth = renderer.render(T_town_cam[i], float(gains[i]), rng)
+        scan = renderer.scan(T_town_cam[i] @ sensors.T_CAM_VELO, rng)
+        _write_frame(stage_seq, i, image, scan, depth if settings.write_depth else None)
+
+    # Two frames in flight: while one thread is in numpy shading or PNG encoding (which release the GIL), the
+    # other's ray cast keeps both cores busy. Each frame has its own random stream, so the order does not matter.
+    with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
+        pending = []
+        for i in range(settings.n_frames):
+            pending.append(pool.submit(frame, i))
+            if len(pending) > RENDER_THREADS:
+                pending.pop(0).result()
+                if progress is not None:
+                    progress(i + 1 - RENDER_THREADS, settings.n_frames)
+        for k, job in enumerate(pending):
+            job.result()
+            if progress is not None:
+                progress(settings.n_frames - len(pending) + k + 1, settings.n_frames)
+
+
+def _write_frame(seq_dir: Path, i: int, image: np.ndarray, scan: np.ndarray, depth: np.ndarray | None) -> None:
+    name = f"{i:06d}"
+    if not cv2.imwrite(str(seq_dir / "image_0" / f"{name}.png"), image):
+        raise SynthError(f"{seq_dir / 'image_0' / name}.png: cannot write the image")
+    scan.astype(np.float32).tofile(seq_dir / "velodyne" / f"{name}.bin")
+    if depth is not None:
+        np.save(seq_dir / "gt" / "depth" / f"{name}.npy", depth.astype(np.float32))
+
+
+def _check_sequence_name(sequence: str) -> None:
+    if not isinstance(sequence, str) or not re.fullmatch(r"\d{2}", sequence):
+        raise SynthError(f"sequence: expected two digits like '00', got {sequence!r}")
+
+
+def check_request(out_root: Path, sequence: str, settings: SynthSettings, overwrite: bool = False) -> None:
+    """Raise SynthError (naming the setting) if the sequence cannot or must not be written; touches nothing."""
+    _check_sequence_name(sequence)
+    plan_trajectory(settings)
+    out_root = Path(out_root)
+    if out_root.exists() and not out_root.is_dir():
+        raise SynthError(f"out_root: {out_root} exists and is not a directory")
+    target = out_root / "sequences" / sequence
+    if target.exists() and not overwrite:
+        raise SynthError(f"{target}: sequence {sequence} exists already (pass overwrite=True / --overwrite)")
+
+
+def write_sequence(root: Path, sequence: str, settings: SynthSettings,
+                   progress: Callable[[int, int], None] | None = None) -> None:
+    """Render every file of one sequence into `root` (a fresh directory, not yet visible to readers)."""
+    traj = plan_trajectory(settings)
+    seq_dir = root / "sequences" / sequence
+    for sub in ("image_0", "velodyne", "gt/depth" if settings.write_depth else "gt"):
+        (seq_dir / sub).mkdir(parents=True, exist_ok=True)
+    (root / "poses").mkdir(parents=True, exist_ok=True)
+    _write_text_files(seq_dir, root / "poses" / f"{sequence}.txt", traj)
+    T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
+    lane = paths.LanePath(traj.route)
+    s_end = float(traj.s[-1]) + ROUTE_LOOKAHEAD_M
+    samples = lane.sample(np.arange(0.0, min(s_end, lane.length), 5.0))[:, :2]
+    town = build_town(paths.make_grid(settings.seed), np.vstack([samples, T_town_cam[:, :2, 3]]), settings.seed)
+    log.info("town: %d triangles, %d edges", len(town.triangles), len(town.edges))
+    gains = exposure_gains(settings)
+    _write_ground_truth(seq_dir / "gt", settings, traj, town, gains)
+    renderer = Renderer(town, build_atlas(settings.seed), settings.seed)
+    _render_frames(seq_dir, settings, traj, renderer, gains, progress)
+
+
+def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed: int = 0, speed_mps: float = 10.0,
+                      loop: bool = False, stops: bool = False, exposure_change: float = 0.0,
+                      write_depth: bool = False, progress: Callable[[int, int], None] | None = None,
+                      overwrite: bool = False) -> Path:
+    """Write sequence NN of the synthetic town under out_root (KITTI odometry layout); returns out_root.
+
+    progress(done, total) is called after each frame. An existing sequence NN is replaced only with overwrite.
+    """
+    settings = SynthSettings(n_frames, seed, speed_mps, bool(loop), bool(stops), exposure_change, bool(write_depth))
+    out_root = Path(out_root)
+    check_request(out_root, sequence, settings, overwrite)
+    target = out_root / "sequences" / sequence
+    out_root.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".synth-{sequence}-", dir=out_root))
+    try:
+        write_sequence(stage, sequence, settings, progress)
+        (out_root / "sequences").mkdir(exist_ok=True)
+        (out_root / "poses").mkdir(exist_ok=True)
+        if target.exists():
+            target.rename(stage / "old-sequence")
+        os.replace(stage / "poses" / f"{sequence}.txt", out_root / "poses" / f"{sequence}.txt")
+        (stage / "sequences" / sequence).rename(target)  # last: a sequence directory is always complete
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return out_root

@@ -1,0 +1,203 @@
+"""Loop closing (paper II-F): BoW query, geometric verification, pose-graph correction, global BA hook.
+
+`LoopCloser.on_keyframe(kf)` runs one keyframe through the whole chain and returns a `LoopResult`. It is
+synchronous; the system runs it in its loop worker. After an accepted loop the closer optimises a pose graph
+(gtsam Pose3: a prior on the first keyframe, BetweenFactors of consecutive keyframes as measured when each
+keyframe arrived, every accepted loop edge) with Levenberg-Marquardt, then hands the corrected poses to the
+optional global bundle-adjustment hook, and keeps the result as its own estimate. The system must apply the
+corrected poses to its map (and tracker) and tell the closer of later changes with `update_poses`; the odometry
+edge of a new keyframe is measured against the closer's estimate of the previous one.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from plvo.config import LoopConfig, RegistrationConfig
+from plvo.geometry import se3
+from plvo.loop.database import Detection, LoopDetector
+from plvo.loop.verification import LoopKeyframe, Verification, verify
+from plvo.loop.vocabulary import Vocabulary, load_default
+
+log = logging.getLogger(__name__)
+
+SCAN_VOXEL_M = 0.2  # scans are kept thinned to this voxel size (registration works at 0.25-0.5 m)
+
+# (ids (K,), poses (K,4,4) after the pose graph, loop edges) -> refined poses (K,4,4), or None to keep them.
+GlobalBAHook = Callable[[np.ndarray, np.ndarray, tuple["LoopEdge", ...]], "np.ndarray | None"]
+
+
+@dataclass(frozen=True)
+class LoopEdge:
+    """Accepted loop: T_match_query (4,4) maps camera `query_id` into camera `match_id` (older keyframe)."""
+
+    query_id: int
+    match_id: int
+    T_match_query: np.ndarray
+    n_inliers: int
+    registered: bool
+
+
+@dataclass(frozen=True)
+class LoopResult:
+    """One keyframe through the loop closer.
+
+    detection: candidates and their scores; verifications: one per candidate checked; accepted: the new loop
+    edge or None; rejections: "candidate <id>: <reason>" (or the detection's reason when nothing was checked);
+    kf_ids (K,) with poses_before / poses_after (K,4,4) T_world_cam when a correction ran, else None;
+    times in milliseconds: bow (transform), query (database), verify, correct (pose graph + global BA).
+    """
+
+    kf_id: int
+    detection: Detection
+    verifications: tuple[Verification, ...]
+    accepted: LoopEdge | None
+    rejections: tuple[str, ...]
+    kf_ids: np.ndarray | None
+    poses_before: np.ndarray | None
+    poses_after: np.ndarray | None
+    bow_ms: float
+    query_ms: float
+    verify_ms: float
+    correct_ms: float
+
+
+def thin_scan(scan: np.ndarray, voxel_m: float = SCAN_VOXEL_M) -> np.ndarray:
+    """(N,3|4) lidar points -> the first point of every occupied voxel, (M,3|4) float32."""
+    scan = np.asarray(scan, dtype=np.float32)
+    finite = np.all(np.isfinite(scan[:, :3]), axis=1)
+    scan = scan[finite]
+    keys = np.floor(scan[:, :3] / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first = np.unique(flat, return_index=True)
+    return scan[np.sort(first)]
+
+
+def optimize_pose_graph(poses: np.ndarray, odometry: list[tuple[int, int, np.ndarray]],
+                        loops: list[tuple[int, int, np.ndarray]], cfg: LoopConfig) -> np.ndarray:
+    """(K,4,4) initial T_world_cam, edges (i, j, T_i_j) by index into poses -> (K,4,4) optimised; pose 0 fixed."""
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    # gtsam's Pose3 tangent is (rotation, translation).
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.r_[[cfg.odom_sigma_rot] * 3, [cfg.odom_sigma_trans] * 3])
+    lp = gtsam.noiseModel.Diagonal.Sigmas(np.r_[[cfg.loop_sigma_rot] * 3, [cfg.loop_sigma_trans] * 3])
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for i, j, T in odometry:
+        graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(T), odo))
+    for i, j, T in loops:
+        graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(T), lp))
+    for k, T in enumerate(poses):
+        values.insert(k, gtsam.Pose3(se3.orthonormalize(T)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.pgo_iterations)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return np.stack([result.atPose3(k).matrix() for k in range(len(poses))])
+
+
+class LoopCloser:
+    """Keyframe-by-keyframe loop detection, verification and correction; K (3,3), T_cam_velo (4,4)."""
+
+    def __init__(self, K: np.ndarray, orb_vocab: Vocabulary | None = None, lbd_vocab: Vocabulary | None = None,
+                 cfg: LoopConfig | None = None, T_cam_velo: np.ndarray | None = None,
+                 reg_cfg: RegistrationConfig | None = None, global_ba: GlobalBAHook | None = None) -> None:
+        self.cfg = cfg or LoopConfig()
+        self.K = np.asarray(K, float)
+        self.T_cam_velo = None if T_cam_velo is None else np.asarray(T_cam_velo, float)
+        self.reg_cfg = reg_cfg
+        self.global_ba = global_ba
+        if orb_vocab is None or lbd_vocab is None:
+            d = Path(self.cfg.vocab_dir) if self.cfg.vocab_dir else None
+            orb_vocab = orb_vocab or (Vocabulary.load(d / "orb.npz") if d else load_default("orb"))
+            lbd_vocab = lbd_vocab or (Vocabulary.load(d / "lbd.npz") if d else load_default("lbd"))
+        self.orb_vocab, self.lbd_vocab = orb_vocab, lbd_vocab
+        self.detector = LoopDetector(self.cfg)
+        self._kfs: dict[int, LoopKeyframe] = {}
+        self._ids: list[int] = []
+        self._poses: dict[int, np.ndarray] = {}
+        self._odom: dict[int, np.ndarray] = {}  # kf id -> T_prev_kf measured when it arrived
+        self.edges: list[LoopEdge] = []
+        self._last_loop_at = -10**9  # arrival index of the last accepted loop
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ids (K,) and the closer's current T_world_cam estimates (K,4,4)."""
+        return np.asarray(self._ids, np.int64), np.stack([self._poses[i] for i in self._ids])
+
+    def update_poses(self, ids: np.ndarray, poses: np.ndarray) -> None:
+        """Tell the closer of refined T_world_cam (K,4,4) of keyframes ids (K,) (e.g. after bundle adjustment)."""
+        for i, T in zip(np.asarray(ids).tolist(), np.asarray(poses)):
+            if i in self._poses:
+                self._poses[i] = np.array(T, float)
+
+    def on_keyframe(self, kf: LoopKeyframe) -> LoopResult:
+        """Query, (maybe) verify and correct with a new keyframe; it joins the database afterwards."""
+        t0 = time.perf_counter()
+        bp = self.orb_vocab.transform(kf.descriptors)
+        bl = self.lbd_vocab.transform(kf.line_descriptors)
+        t1 = time.perf_counter()
+        det = self.detector.detect(kf.kf_id, bp, bl)
+        t2 = time.perf_counter()
+        self._store(kf)
+        self.detector.add(kf.kf_id, bp, bl)
+        checks, accepted, rejections = self._verify(kf, det)
+        t3 = time.perf_counter()
+        ids = before = after = None
+        if accepted is not None:
+            ids, before, after = self._correct(accepted)
+        t4 = time.perf_counter()
+        return LoopResult(kf.kf_id, det, checks, accepted, rejections, ids, before, after,
+                          1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))
+
+    def _store(self, kf: LoopKeyframe) -> None:
+        if self._ids:
+            prev = self._ids[-1]
+            self._odom[kf.kf_id] = se3.inv(self._poses[prev]) @ kf.T_world_cam
+        scan = None if kf.scan is None or not self.cfg.use_registration else thin_scan(kf.scan)
+        self._kfs[kf.kf_id] = LoopKeyframe(kf.kf_id, np.array(kf.T_world_cam, float), kf.keypoints,
+                                           kf.descriptors, kf.points_cam, kf.segments, kf.line_descriptors,
+                                           kf.lines_cam, scan, kf.frame_index)
+        self._ids.append(kf.kf_id)
+        self._poses[kf.kf_id] = np.array(kf.T_world_cam, float)
+
+    def _verify(self, kf: LoopKeyframe, det: Detection):
+        if not det.ready:
+            return (), None, (det.reason,) if det.reason else ()
+        since = len(self._ids) - 1 - self._last_loop_at
+        if since <= self.cfg.loop_cooldown:
+            return (), None, (f"{since} keyframes since the last loop (cooldown {self.cfg.loop_cooldown})",)
+        query = self._kfs[kf.kf_id]
+        checks, rejections = [], []
+        for cid in det.to_verify:
+            v = verify(query, self._kfs[cid], self.K, self.cfg, self.T_cam_velo, self.reg_cfg)
+            checks.append(v)
+            if v.accepted:
+                edge = LoopEdge(kf.kf_id, cid, v.T_cand_query, v.n_point_inliers + v.n_line_inliers, v.registered)
+                self.edges.append(edge)
+                self._last_loop_at = len(self._ids) - 1
+                return tuple(checks), edge, tuple(rejections)
+            rejections.append(f"candidate {cid}: {v.reason}")
+        return tuple(checks), None, tuple(rejections)
+
+    def _correct(self, edge: LoopEdge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ids, before = self.poses()
+        index = {k: n for n, k in enumerate(self._ids)}
+        odometry = [(index[self._ids[n - 1]], n, self._odom[self._ids[n]]) for n in range(1, len(self._ids))]
+        loops = [(index[e.match_id], index[e.query_id], e.T_match_query) for e in self.edges]
+        after = optimize_pose_graph(before, odometry, loops, self.cfg)
+        if self.global_ba is not None:
+            refined = self.global_ba(ids, after, tuple(self.edges))
+            if refined is not None:
+                after = np.asarray(refined, float)
+        self.update_poses(ids, after)
+        # Odometry edges stay as measured: they are the tracker's constraints, not the current estimate.
+        log.info("loop %d -> %d: corrected %d keyframe poses, last moved by %.2f m", edge.query_id,
+                 edge.match_id, len(ids), float(np.linalg.norm(after[-1, :3, 3] - before[-1, :3, 3])))
+        return ids, before, after
