@@ -121,13 +121,9 @@ def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float
                "frames_per_second": fps, "stages": system.timing_summary(),
                "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
     write_text_atomic(out / "timings.json", json.dumps(timings, indent=1) + "\n")
-    if status == "complete" and system.has_odometry:
+    if status == "complete":
         from plvo.data.trajectory import write_kitti_poses
-        from plvo.geometry.se3 import inv
-
-        T_cam_cam0 = inv(dataset.calib.T_cam0_cam)
-        poses = np.array([system.poses[f] @ T_cam_cam0 for f in dataset.frame_indices])
-        write_kitti_poses(out / "poses.txt", poses)
+        write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
 
 
 def _run_frames(system, dataset) -> float:
@@ -153,14 +149,11 @@ def run(args: argparse.Namespace) -> int:
     cfg = _resolve_config(args)
     dataset = _open(args)
     outs = _outputs(args, dataset.sequence)
-    from plvo.system import default_stages
-
-    stages = default_stages()
     info = RunInfo(
         name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
         gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
         git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
-        extra={"config_toml": config_to_toml(cfg), "has_odometry": stages.tracker is not None})
+        extra={"config_toml": config_to_toml(cfg)})
     recorders, viewer = [RerunRecorder(outs.rrd)], None
     if not args.no_serve:
         from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
@@ -168,11 +161,12 @@ def run(args: argparse.Namespace) -> int:
         viewer = ViserViewer(SceneStore(), port=args.port, live=True)
         recorders.append(ViserRecorder(viewer))
         print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
-    system = System(cfg, FanOut(recorders), stages)
+    system = System(cfg, FanOut(recorders))
     system.start(info)
     status, fps = "interrupted", 0.0
     try:
         fps = _run_frames(system, dataset)
+        system.finish()  # the back end and loop closer finish their keyframes; their results are recorded
         status = "complete"
     except KeyboardInterrupt:
         print(f"interrupted after {system.frames_done} of {len(dataset)} frames; keeping what was recorded",
@@ -185,9 +179,6 @@ def run(args: argparse.Namespace) -> int:
         system.close()
         _write_results(outs.out, system, cfg, status, fps, dataset)
     print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
-    if not system.has_odometry:
-        print("odometry is not implemented yet: no poses.txt written (the viewers place the camera at ground "
-              "truth)", file=sys.stderr)
     if status != "complete":
         if viewer is not None:
             viewer.close()

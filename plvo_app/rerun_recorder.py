@@ -185,7 +185,8 @@ class RerunRecorder:
             self._set_camera(frame.gt_T_world_cam)
 
     def on_stage(self, frame_index: int, result: Any) -> None:
-        handler = _HANDLERS.get(type(result).__name__)
+        # By class name along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult).
+        handler = next((_HANDLERS[c.__name__] for c in type(result).__mro__ if c.__name__ in _HANDLERS), None)
         if handler is None:
             log.debug("no Rerun handler for %s", type(result).__name__)
             return

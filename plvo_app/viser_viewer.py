@@ -315,7 +315,9 @@ class ViserRecorder:
             self.viewer.refresh()
 
     def on_stage(self, frame_index: int, result: Any) -> None:
-        name = type(result).__name__
+        known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult")
+        # along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult)
+        name = next((c.__name__ for c in type(result).__mro__ if c.__name__ in known), "")
         s = self.store
         if name == "TrackingResult":
             self._pose_from_gt = False

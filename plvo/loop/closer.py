@@ -1,6 +1,6 @@
 """Loop closing (paper II-F): BoW query, geometric verification, pose-graph correction, global BA hook.
 
-`LoopCloser.on_keyframe(kf)` runs one keyframe through the whole chain and returns a `LoopResult`. It is
+`LoopCloser.on_keyframe(kf)` runs one keyframe through the whole chain and returns a `LoopOutcome`. It is
 synchronous; the system runs it in its loop worker. After an accepted loop the closer optimises a pose graph
 (gtsam Pose3: a prior on the first keyframe, BetweenFactors of consecutive keyframes as measured when each
 keyframe arrived, every accepted loop edge) with Levenberg-Marquardt, then hands the corrected poses to the
@@ -46,7 +46,7 @@ class LoopEdge:
 
 
 @dataclass(frozen=True)
-class LoopResult:
+class LoopOutcome:
     """One keyframe through the loop closer.
 
     detection: candidates and their scores; verifications: one per candidate checked; accepted: the new loop
@@ -137,7 +137,7 @@ class LoopCloser:
             if i in self._poses:
                 self._poses[i] = np.array(T, float)
 
-    def on_keyframe(self, kf: LoopKeyframe) -> LoopResult:
+    def on_keyframe(self, kf: LoopKeyframe) -> LoopOutcome:
         """Query, (maybe) verify and correct with a new keyframe; it joins the database afterwards."""
         t0 = time.perf_counter()
         bp = self.orb_vocab.transform(kf.descriptors)
@@ -153,7 +153,7 @@ class LoopCloser:
         if accepted is not None:
             ids, before, after = self._correct(accepted)
         t4 = time.perf_counter()
-        return LoopResult(kf.kf_id, det, checks, accepted, rejections, ids, before, after,
+        return LoopOutcome(kf.kf_id, det, checks, accepted, rejections, ids, before, after,
                           1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))
 
     def _store(self, kf: LoopKeyframe) -> None:

@@ -299,6 +299,25 @@ class LandmarkMap:
             self.version += 1
             return self.version
 
+    def landmarks_first_seen_after(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Ids of the live point and line landmarks created by keyframes newer than kf_id."""
+        with self.lock:
+            pts = np.flatnonzero(self._pts["alive"] & (self._pts["first_kf"] > kf_id))
+            lns = np.flatnonzero(self._lines["alive"] & (self._lines["first_kf"] > kf_id))
+            return pts, lns
+
+    def point_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Live point landmark ids (P,) and the keyframe that created each (P,)."""
+        with self.lock:
+            ids = np.flatnonzero(self._pts["alive"])
+            return ids, self._pts["first_kf"][ids].copy()
+
+    def line_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Live line landmark ids (L,) and the keyframe that created each (L,)."""
+        with self.lock:
+            ids = np.flatnonzero(self._lines["alive"])
+            return ids, self._lines["first_kf"][ids].copy()
+
     def snapshot(self) -> MapSnapshot:
         """A frozen, consistent copy of the live landmarks and all keyframe poses."""
         with self.lock:
