@@ -126,6 +126,7 @@ class RegistrationConfig:
 
 @dataclass(frozen=True)
 class BackendConfig:
+    enabled: bool = True  # False: odometry alone (the tracker's poses, no registration or bundle adjustment)
     scale_correction: bool = True  # ablation "no scale correction"
     window_keyframes: int = 8
     sigma_point_px: float = 0.1  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)

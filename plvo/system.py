@@ -113,13 +113,14 @@ class System:
 
         self._calib = calib
         self._frontend = Frontend(calib, self.config, stages=(extract_features, match_points, match_lines, depth))
-        self._backend = Backend(calib, self.config, self._frontend.map)
+        self._backend = Backend(calib, self.config, self._frontend.map) if self.config.backend.enabled else None
         self._loop = None
         if self.config.loop.enabled:
             from plvo.loop.worker import LoopWorker
 
             self._loop = LoopWorker(calib, self.config, self._frontend.map)
-            self._backend.loop_edges = self._loop.loop_edges  # drawn in the keyframe graph
+            if self._backend is not None:
+                self._backend.loop_edges = self._loop.loop_edges  # drawn in the keyframe graph
 
     def _emit(self, frame_index: int, results: Iterable[Any]) -> None:
         with self._clock.stage("recording"):
@@ -161,8 +162,9 @@ class System:
         keyframe = KeyframeResult(frame.index, kf.kf_id, np.asarray(kf.T_world_cam), res.keyframe_reason)
         self._emit(frame.index, [keyframe, *self._depth_debug])
         self._depth_debug = []
-        with self._clock.stage("backend_submit"):
-            self._backend.submit(kf)
+        if self._backend is not None:
+            with self._clock.stage("backend_submit"):
+                self._backend.submit(kf)
         if self._loop is not None:
             with self._clock.stage("loop_submit"):
                 self._loop.submit(kf)
