@@ -1,7 +1,9 @@
 """Run the pipeline on a sequence, streaming every stage to a Rerun recording and a viser web viewer.
 
-Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and results/<seq>_<time>/ with poses.txt
-(KITTI format, only when odometry ran to the end), config.toml (the resolved config) and timings.json.
+With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
+$PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
+results/<seq>_<time>/ with poses.txt (KITTI format, cam0, first frame at identity; written only when the run
+completed), config.toml (the resolved config) and timings.json.
 Ctrl-C stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json likewise.
 """
 
@@ -17,8 +19,6 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from plvo.atomic import write_text_atomic
 from plvo.config import SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
@@ -71,20 +71,43 @@ def _resolve_config(args: argparse.Namespace) -> SystemConfig:
 
 
 def _open(args: argparse.Namespace):
-    """The dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town when no dataset is given."""
+    """(dataset, run label): the dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town ("town00")
+    when no dataset is given."""
     from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
 
     frames = parse_frames(args.frames) if args.frames else None
     if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
-        try:
-            from plvo.data.synth import default_sequence_root
-        except ImportError:
-            raise DatasetError(f"no dataset: give --root DIR or set ${ROOT_ENV} (the synthetic town is not "
-                               "available in this build)") from None
-        root = Path(default_sequence_root())
-        seq = sorted(p.name for p in (root / "sequences").iterdir())[0]
-        return open_dataset(root, seq, frames)
-    return open_dataset(args.root, args.seq or "00", frames)
+        root, seq = _synthetic_town()
+        return open_dataset(root, seq, frames), f"town{seq}"
+    dataset = open_dataset(args.root, args.seq or "00", frames)
+    return dataset, dataset.sequence
+
+
+def _synthetic_town() -> tuple[Path, str]:
+    """(root, sequence) of the default synthetic town, generated once into the cache (with a progress bar)."""
+    from plvo.data.registry import ROOT_ENV
+
+    try:
+        from plvo.data.synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, default_sequence_root
+        from plvo.data.synth.cache import cache_dir, settings_hash
+    except ImportError:
+        raise DatasetError(f"no dataset: give --root DIR or set ${ROOT_ENV} (the synthetic town is not "
+                           "available in this build)") from None
+    st = DEFAULT_SETTINGS
+    where = cache_dir() / settings_hash(st, DEFAULT_SEQUENCE)
+    cached = (where / "sequences" / DEFAULT_SEQUENCE / "calib.txt").is_file()
+    print(f"no --root and no ${ROOT_ENV}: running the synthetic town (sequence {DEFAULT_SEQUENCE}, {st.n_frames} "
+          f"frames at {st.speed_mps:g} m/s{', with a loop' if st.loop else ''}), "
+          f"{'cached in' if cached else 'generated once (a few minutes) into'} {where}", file=sys.stderr)
+    if cached:
+        return Path(default_sequence_root()), DEFAULT_SEQUENCE
+    from tqdm import tqdm
+
+    with tqdm(total=st.n_frames, unit="frame", desc="synthetic town", dynamic_ncols=True) as bar:
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        return Path(default_sequence_root(progress)), DEFAULT_SEQUENCE
 
 
 def _unique(path: Path) -> Path:
@@ -147,8 +170,8 @@ def run(args: argparse.Namespace) -> int:
     from plvo_app.rerun_recorder import RerunRecorder
 
     cfg = _resolve_config(args)
-    dataset = _open(args)
-    outs = _outputs(args, dataset.sequence)
+    dataset, label = _open(args)
+    outs = _outputs(args, label)
     info = RunInfo(
         name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
         gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),

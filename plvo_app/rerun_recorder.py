@@ -2,13 +2,17 @@
 
 All entity paths are in `ENTITIES`, the one table of what is logged where. Timelines: `frame` (the dataset's frame
 number) and `sensor_time` (seconds). Calibration and ground truth are static. Images are JPEG, scans thinned to a
-fixed budget, so that a whole KITTI sequence stays a file a person can attach to a bug report.
+fixed budget, the per-keyframe debug layers logged on keyframes only, so that a whole KITTI sequence stays a file a
+person can attach to a bug report. Scalars are buffered and sent as columns every few frames (and on close): one
+`rr.log` costs ~0.2 ms, and a frame has ~30 of them.
 """
 
 from __future__ import annotations
 
 import logging
+from collections import defaultdict
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -18,10 +22,14 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from plvo.errors import RecordingError
+from plvo.geometry.camera import backproject, in_image, project
+from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
-from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
+from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
 from plvo.results import TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
+from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
+                                   gt_in_estimate_world, inlier_colors, thin, zeta_colors)
 
 log = logging.getLogger(__name__)
 
@@ -30,39 +38,54 @@ class Entity(NamedTuple):
     path: str
     archetype: str
     what: str
+    when: str  # "static", "frame" (every frame), "keyframe", "back end" (each back-end step), "event"
 
 
 ENTITIES: dict[str, Entity] = {
     e.path: e
     for e in [
-        Entity("world", "ViewCoordinates", "static; RDF: OpenCV camera convention (x right, y down, z forward)"),
-        Entity("world/camera", "Transform3D", "current camera pose T_world_cam, every frame"),
-        Entity("world/camera/image", "Pinhole (static), EncodedImage", "JPEG image and intrinsics"),
-        Entity("world/camera/image/orb", "Points2D", "ORB keypoints; tracked ones green"),
-        Entity("world/camera/image/lsd_raw", "LineStrips2D", "LSD segments before chaining and merging"),
-        Entity("world/camera/image/lsd_merged", "LineStrips2D", "LSD segments after chaining and merging"),
-        Entity("world/camera/image/lidar", "Points2D", "keyframe scan projected into the image, coloured by depth"),
-        Entity("world/camera/image/patches", "Boxes2D", "point patches searched for depth (green: prior found)"),
-        Entity("world/camera/image/line_patches", "LineStrips2D", "bands searched around line features for depth"),
-        Entity("world/lidar", "Transform3D", "lidar pose T_world_velo at the last keyframe"),
-        Entity("world/lidar/scan", "Points3D", "the keyframe scan, thinned, in the lidar frame"),
-        Entity("world/depth/points", "Points3D", "point depth priors of the last keyframe"),
-        Entity("world/depth/lines", "LineStrips3D", "fitted 3D lines of the last keyframe"),
-        Entity("world/depth/planes", "Mesh3D", "fitted patch planes of the point priors of the last keyframe"),
-        Entity("world/map/points", "Points3D", "point landmarks after bundle adjustment"),
-        Entity("world/map/lines", "LineStrips3D", "line landmarks after bundle adjustment"),
-        Entity("world/keyframes", "Points3D", "keyframe positions"),
-        Entity("world/graph", "LineStrips3D", "factor-graph edges coloured by information zeta"),
-        Entity("world/loops", "LineStrips3D", "accepted loop edges"),
-        Entity("world/trajectory/est", "LineStrips3D", "estimated trajectory (at keyframes)"),
-        Entity("world/trajectory/gt", "LineStrips3D", "ground-truth trajectory, static"),
-        Entity("metrics", "Scalars", "metrics/time/<stage> ms, metrics/<stage>/<count>"),
-        Entity("log", "TextLog", "decisions: keyframes, tracking lost, loops accepted or rejected and why"),
+        Entity("world", "ViewCoordinates", "RDF: OpenCV camera convention (x right, y down, z forward)", "static"),
+        Entity("world/camera", "Transform3D", "current estimated camera pose T_world_cam", "frame"),
+        Entity("world/camera/image", "Pinhole (static), EncodedImage", "JPEG image and intrinsics", "frame"),
+        Entity("world/camera/image/orb", "Points2D", "all ORB keypoints (grey)", "frame"),
+        Entity("world/camera/image/tracked_points", "Points2D",
+               "keypoints matched to point landmarks: PnP inliers green, outliers red", "frame"),
+        Entity("world/camera/image/tracked_lines", "LineStrips2D",
+               "segments matched to line landmarks: PnL inliers green, outliers red", "frame"),
+        Entity("world/camera/image/lsd_merged", "LineStrips2D", "LSD segments after chaining and merging", "frame"),
+        Entity("world/camera/image/lsd_raw", "LineStrips2D", "LSD segments before chaining and merging", "keyframe"),
+        Entity("world/camera/image/lidar", "Points2D", "scan projected into the image, coloured by depth", "keyframe"),
+        Entity("world/camera/image/patches", "Boxes2D", "point patches searched for depth (green: prior found)",
+               "keyframe"),
+        Entity("world/camera/image/line_patches", "LineStrips2D", "bands searched around segments for depth",
+               "keyframe"),
+        Entity("world/lidar", "Transform3D", "lidar pose T_world_velo at the keyframe", "keyframe"),
+        Entity("world/lidar/scan", "Points3D", "the keyframe scan, thinned, in the lidar frame", "keyframe"),
+        Entity("world/depth/points", "Points3D", "point depth priors of the keyframe", "keyframe"),
+        Entity("world/depth/lines", "LineStrips3D", "fitted 3D lines of the keyframe", "keyframe"),
+        Entity("world/depth/planes", "Mesh3D", "fitted patch planes of the keyframe's point priors", "keyframe"),
+        Entity("world/map/points", "Points3D", "point landmarks of the local window after bundle adjustment",
+               "back end"),
+        Entity("world/map/lines", "LineStrips3D", "line landmarks of the local window after bundle adjustment",
+               "back end"),
+        Entity("world/keyframes", "Points3D", "keyframe positions (refined by the back end)", "keyframe"),
+        Entity("world/graph", "LineStrips3D", "factor-graph edges: zeta red (0) to green (exp(-2) or more); loops "
+               "magenta", "back end"),
+        Entity("world/loops", "LineStrips3D", "accepted loop edges", "event"),
+        Entity("world/trajectory/est", "LineStrips3D", "estimated trajectory, every frame through its keyframe's "
+               "refined pose", "keyframe"),
+        Entity("world/trajectory/gt", "LineStrips3D", "ground truth (white) in the estimate's world (its first "
+               "frame)", "static"),
+        Entity("metrics", "Scalars", "metrics/time/<stage> ms; metrics/{features,tracking,depth,map,backend,loop}/"
+               "<count>", "frame"),
+        Entity("log", "TextLog", "decisions: initialised, keyframe and why, tracking lost and re-initialised, loops "
+               "accepted or rejected and why", "event"),
     ]
 }
 # Short names used below; every path is a key of ENTITIES (checked at import).
 E = {
     "camera": "world/camera", "image": "world/camera/image", "orb": "world/camera/image/orb",
+    "tracked_points": "world/camera/image/tracked_points", "tracked_lines": "world/camera/image/tracked_lines",
     "lsd_raw": "world/camera/image/lsd_raw", "lsd_merged": "world/camera/image/lsd_merged",
     "lidar2d": "world/camera/image/lidar", "patches": "world/camera/image/patches",
     "line_patches": "world/camera/image/line_patches", "planes": "world/depth/planes", "lidar": "world/lidar",
@@ -72,47 +95,35 @@ E = {
 }
 assert set(E.values()) <= set(ENTITIES)
 
-GREY, GREEN, RED, ORANGE, CYAN = (170, 170, 170), (40, 220, 60), (230, 50, 50), (255, 150, 20), (40, 200, 230)
 
 
 @dataclass(frozen=True)
 class RerunOptions:
-    jpeg_quality: int = 55
-    scan_max_points: int = 6000  # the 3D scan, thinned by stride (a KITTI scan has ~120k)
-    overlay_max_points: int = 2500  # the scan projected into the image
-    trajectory_max_points: int = 2000
+    jpeg_quality: int = 40  # KITTI images are noisy: 55 -> 40 saves ~20 % and still reads well
+    scan_max_points: int = 4000  # the 3D scan, thinned by stride (a KITTI scan has ~120k)
+    overlay_max_points: int = 1500  # the scan projected into the image
+    trajectory_max_points: int = 1000
+    scalar_flush_frames: int = 25  # scalars are sent as columns this often (and on close)
 
 
 def blueprint() -> rrb.Blueprint:
     """3D world on the left; the camera image with overlays, time series and the decision log on the right."""
+    plots = rrb.Tabs(
+        rrb.TimeSeriesView(name="tracking", origin="metrics/tracking"),
+        rrb.TimeSeriesView(name="timings (ms)", origin="metrics/time"),
+        rrb.TimeSeriesView(name="back end", origin="metrics/backend"),
+        rrb.TimeSeriesView(name="other counts", origin="metrics", contents=[
+            "+ $origin/**", "- /metrics/time/**", "- /metrics/tracking/**", "- /metrics/backend/**"]),
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name="3D world", origin="world"),
-            rrb.Vertical(
-                rrb.Spatial2DView(name="camera", origin="world/camera/image"),
-                rrb.Tabs(
-                    rrb.TimeSeriesView(name="timings (ms)", origin="metrics/time"),
-                    rrb.TimeSeriesView(name="counts", origin="metrics", contents=["+ $origin/**", "- /metrics/time/**"]),
-                ),
-                rrb.TextLogView(name="log", origin="log"),
-                row_shares=[3, 2, 1],
-            ),
+            rrb.Vertical(rrb.Spatial2DView(name="camera", origin="world/camera/image"), plots,
+                         rrb.TextLogView(name="log", origin="log"), row_shares=[3, 2, 1]),
             column_shares=[3, 2],
         ),
         collapse_panels=True,
     )
-
-
-def thin(n: int, budget: int) -> slice:
-    """A stride slice keeping at most `budget` of `n` items."""
-    return slice(None, None, max(1, -(-n // max(1, budget))))
-
-
-def depth_colors(z: np.ndarray, near: float = 2.0, far: float = 50.0) -> np.ndarray:
-    """(N,) depths -> (N,3) uint8 colours, near red to far blue (turbo)."""
-    t = np.clip((np.log(np.maximum(z, near)) - np.log(near)) / (np.log(far) - np.log(near)), 0, 1)
-    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
-    return lut[(255 * (1 - t)).astype(np.uint8)]
 
 
 def _segments_2d(seg: np.ndarray) -> np.ndarray:
@@ -133,7 +144,10 @@ class RerunRecorder:
                  stream: rr.RecordingStream | None = None):
         self.path = None if path is None else Path(path)
         self.opt = options or RerunOptions()
-        self.rec = stream or rr.RecordingStream("plvo")
+        # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of chunk
+        # headers a frame; close() flushes, so Ctrl-C loses nothing.
+        self.rec = stream or rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(
+            flush_tick=timedelta(seconds=2), flush_num_bytes=8 << 20))
         if self.path is not None:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -142,47 +156,46 @@ class RerunRecorder:
                 raise RecordingError(f"{self.path}: cannot write the recording ({exc})") from None
         self._frame: Frame | None = None
         self._T_world_cam: np.ndarray | None = None
-        self._pose_from_gt = False
-        self._est: list[np.ndarray] = []
-        self._keyframes: dict[int, np.ndarray] = {}
+        self._trail = EstimateTrail()
+        self._dirty = False  # a keyframe was made: the keyframes and the estimate are logged at the step's end
         self._loops: list[np.ndarray] = []
-        self._point_valid: np.ndarray | None = None  # of the last DepthPriors, for the debug overlays
-        self._have_depth_debug = False  # then the projected scan comes from the depth stage, not from here
-        self._keypoints: np.ndarray | None = None  # (N,2) of the frame's FeatureSet, for depth and tracking
+        self._features: FeatureSet | None = None  # this frame's, for depth, tracking and the keyframe's raw LSD
+        self._tracking: Any = None  # this frame's tracking result
+        self._point_valid: np.ndarray | None = None  # of the last DepthPriors, for the patch colours
+        self._overlay_pending = False
+        self._at = -1  # the frame the result being handled belongs to
+        self._times: dict[int, float] = {}
+        self._scalars_buf: dict[str, tuple[list[int], list[float], list[float]]] = defaultdict(lambda: ([], [], []))
+        self._frames_since_flush = 0
         self._closed = False
 
     # ---- Recorder protocol -------------------------------------------------------------------------------
     def on_run_start(self, info: RunInfo) -> None:
         rec = self.rec
         rec.send_recording_name(info.name)
-        self._pose_from_gt = not info.extra.get("has_odometry", True)
         rec.send_property("plvo", rr.AnyValues(
             version=info.version, git_revision=info.git_revision, command_line=info.command_line,
             config=info.extra.get("config_toml", repr(info.config)), sequence=info.sequence,
             frames=f"{info.frame_indices[0]}:{info.frame_indices[-1] + 1}" if info.frame_indices else "",
-            camera_pose_source="ground truth (no odometry yet)" if self._pose_from_gt else "estimate",
         ))
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
         c = info.calib
         rec.log(E["image"], rr.Pinhole(image_from_camera=c.K, resolution=[c.width, c.height],
                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0), static=True)
-        if info.gt_T_world_cam is not None and len(info.gt_T_world_cam):
-            gt = np.asarray(info.gt_T_world_cam)[:, :3, 3].astype(np.float32)
-            rec.log(E["gt"], rr.LineStrips3D([gt], colors=[ORANGE], radii=rr.Radius.ui_points(1.5)), static=True)
-        if self._pose_from_gt:
-            rec.log("log", rr.TextLog("odometry is not implemented yet: the camera is placed at ground truth",
-                                      level=rr.TextLogLevel.WARN), static=True)
+        gt = gt_in_estimate_world(info)
+        if gt is not None:
+            rec.log(E["gt"], rr.LineStrips3D([gt[:, :3, 3].astype(np.float32)], colors=[(235, 235, 235)],
+                                             radii=rr.Radius.ui_points(1.5)), static=True)
 
     def on_frame(self, frame: Frame) -> None:
         rec = self.rec
-        self._frame = frame
-        rec.set_time("frame", sequence=int(frame.index))
-        rec.set_time("sensor_time", duration=float(frame.time))
+        self._frame, self._features, self._tracking = frame, None, None
+        self._at = int(frame.index)
+        self._times[self._at] = float(frame.time)
+        self._set_time(self._at)
         ok, buf = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, self.opt.jpeg_quality])
         if ok:
             rec.log(E["image"], rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
-        if self._pose_from_gt and frame.gt_T_world_cam is not None:
-            self._set_camera(frame.gt_T_world_cam)
 
     def on_stage(self, frame_index: int, result: Any) -> None:
         # By class name along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult).
@@ -190,7 +203,23 @@ class RerunRecorder:
         if handler is None:
             log.debug("no Rerun handler for %s", type(result).__name__)
             return
-        handler(self, result)
+        # A worker's result (back end, loop closer) arrives a few frames late: log it at its own frame, so that
+        # the recording says which keyframe it belongs to whatever the threads' timing.
+        current = self._frame.index if self._frame is not None else frame_index
+        self._at = int(frame_index)
+        if frame_index != current:
+            self._set_time(frame_index)
+        try:
+            handler(self, result)
+        finally:
+            if frame_index != current:
+                self._at = int(current)
+                self._set_time(current)
+
+    def _set_time(self, frame_index: int) -> None:
+        self.rec.set_time("frame", sequence=int(frame_index))
+        if frame_index in self._times:
+            self.rec.set_time("sensor_time", duration=self._times[frame_index])
 
     def set_status(self, status: str, frames_done: int) -> None:
         """Stamp the recording as complete or interrupted (a static property: the last one wins)."""
@@ -200,94 +229,100 @@ class RerunRecorder:
         if self._closed:
             return
         self._closed = True
+        self._dirty = True  # the final estimate, with what the workers refined in System.finish()
+        self._log_dirty()
+        self._flush_scalars()
         self.rec.flush()
         if self.path is not None:
             self.rec.disconnect()
 
     # ---- helpers -----------------------------------------------------------------------------------------
-    def _set_camera(self, T_world_cam: np.ndarray) -> None:
-        self._T_world_cam = np.asarray(T_world_cam, dtype=float)
-        self.rec.log(E["camera"], _transform(self._T_world_cam))
-
     def _scalars(self, prefix: str, values: dict[str, float]) -> None:
+        if self._at < 0:
+            return
+        f, t = self._at, self._times.get(self._at, 0.0)
         for name, value in values.items():
-            self.rec.log(f"metrics/{prefix}/{name}", rr.Scalars(float(value)))
+            frames, times, vals = self._scalars_buf[f"metrics/{prefix}/{name}"]
+            frames.append(f)
+            times.append(t)
+            vals.append(float(value))
+
+    def _flush_scalars(self) -> None:
+        for path, (frames, times, vals) in self._scalars_buf.items():
+            if frames:
+                self.rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=frames),
+                                                     rr.TimeColumn("sensor_time", duration=times)],
+                                      columns=rr.Scalars.columns(scalars=np.asarray(vals)))
+        self._scalars_buf.clear()
+        self._frames_since_flush = 0
 
     def _text(self, text: str, level: str = rr.TextLogLevel.INFO) -> None:
         self.rec.log("log", rr.TextLog(text, level=level))
 
+    def _log_dirty(self) -> None:
+        if not self._dirty:
+            return
+        self._dirty = False
+        kfs = self._trail.keyframe_positions()
+        if len(kfs):
+            self.rec.log(E["keyframes"], rr.Points3D(kfs.astype(np.float32), colors=[ORANGE],
+                                                     radii=rr.Radius.ui_points(5)))
+        est = self._trail.positions().astype(np.float32)
+        if len(est) >= 2:
+            est = np.vstack([est[thin(len(est), self.opt.trajectory_max_points)], est[-1:]])
+            self.rec.log(E["est"], rr.LineStrips3D([est], colors=[GREEN], radii=rr.Radius.ui_points(2)))
+
     # ---- stage handlers ----------------------------------------------------------------------------------
     def features(self, fs: FeatureSet) -> None:
         rec = self.rec
-        self._keypoints = np.asarray(fs.keypoints, float)
-        rec.log(E["orb"], rr.Points2D(np.asarray(fs.keypoints, np.float32), colors=[GREY], radii=rr.Radius.ui_points(2)))
-        rec.log(E["lsd_raw"], rr.LineStrips2D(_segments_2d(fs.raw_segments), colors=[RED], radii=rr.Radius.ui_points(1)))
+        self._features = fs
+        rec.log(E["orb"], rr.Points2D(np.asarray(fs.keypoints, np.float32), colors=[GREY],
+                                      radii=rr.Radius.ui_points(2)))
         rec.log(E["lsd_merged"], rr.LineStrips2D(_segments_2d(fs.segments), colors=[CYAN],
-                                                 radii=rr.Radius.ui_points(2)))
+                                                 radii=rr.Radius.ui_points(1.5)))
         self._scalars("features", {"points": fs.n_points, "lines": fs.n_lines, "raw_segments": len(fs.raw_segments)})
 
     def matches(self, m: FeatureMatches) -> None:
         self._scalars("matching", {"points": len(m.points), "lines": len(m.lines)})
 
-    def depth(self, d: DepthPriors) -> None:
-        frame = self._frame
-        self._point_valid = np.asarray(d.point_valid)
-        self._scalars("depth", {"point_priors": int(np.sum(d.point_valid)), "line_priors": int(np.sum(d.line_valid))})
-        lines = np.asarray(d.line_endpoints, np.float32)[d.line_valid]
-        self.rec.log(E["depth_lines"], rr.LineStrips3D(lines, colors=[CYAN]))
-        if frame is None or not len(d.point_depth):
-            return
-        # The points were fitted in this keyframe's camera frame; draw them in the world where the camera is.
-        uv = self._keypoints
-        if uv is not None and len(uv) == len(d.point_depth) and self._T_world_cam is not None:
-            from plvo.geometry.camera import backproject
-            from plvo.geometry.se3 import transform_points
-
-            ok = d.point_valid
-            pts = transform_points(self._T_world_cam, backproject(frame.calib.K, uv[ok], d.point_depth[ok]))
-            self.rec.log(E["depth_points"], rr.Points3D(pts.astype(np.float32), colors=[GREEN],
-                                                        radii=rr.Radius.ui_points(3)))
-
-    def depth_debug(self, dbg: Any) -> None:
-        """plvo.depth.extract.DepthDebug: projected scan, searched patches, fitted planes (camera frame, pixels)."""
-        self._have_depth_debug = True
-        uv, z = np.asarray(dbg.scan_uv), np.asarray(dbg.scan_depth)
-        s = thin(len(uv), self.opt.overlay_max_points)
-        self.rec.log(E["lidar2d"], rr.Points2D(uv[s].astype(np.float32), colors=depth_colors(z[s]),
-                                               radii=rr.Radius.ui_points(1.5)))
-        boxes = np.asarray(dbg.point_boxes, np.float32)
-        valid = self._point_valid if self._point_valid is not None and len(self._point_valid) == len(boxes) \
-            else np.zeros(len(boxes), bool)
-        colors = np.where(valid[:, None], np.array(GREEN, np.uint8), np.array(RED, np.uint8))
-        self.rec.log(E["patches"], rr.Boxes2D(mins=boxes[:, :2], sizes=boxes[:, 2:] - boxes[:, :2], colors=colors))
-        bands = np.asarray(dbg.line_bands, np.float32)
-        self.rec.log(E["line_patches"], rr.LineStrips2D(np.concatenate([bands, bands[:, :1]], axis=1), colors=[CYAN]))
-        self._scalars("time/depth", dict(dbg.timings_ms))
-        quads = np.asarray(dbg.plane_quads, float)
-        quads = quads[np.all(np.isfinite(quads), axis=(1, 2))]
-        if self._T_world_cam is not None and len(quads):
-            from plvo.geometry.se3 import transform_points
-
-            verts = transform_points(self._T_world_cam, quads.reshape(-1, 3)).astype(np.float32)
-            base = 4 * np.arange(len(quads))[:, None]
-            tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.uint32)
-            self.rec.log(E["planes"], rr.Mesh3D(vertex_positions=verts, triangle_indices=tris,
-                                                vertex_colors=np.tile(np.array(GREEN, np.uint8), (len(verts), 1))))
+    def tracking(self, t: TrackingResult) -> None:
+        self._tracking = t
+        self._T_world_cam = np.asarray(t.T_world_cam, dtype=float)
+        self.rec.log(E["camera"], _transform(self._T_world_cam))
+        self._trail.on_tracking(t.frame_index, self._T_world_cam)
+        counts = {"point_matches": t.n_point_matches, "line_matches": t.n_line_matches,
+                  "point_inliers": len(t.point_inliers), "line_inliers": len(t.line_inliers), "lost": int(not t.ok)}
+        uv = getattr(t, "point_uv", None)  # the tracker's FrontendResult: its 3D-2D matches with their verdicts
+        if uv is not None:
+            segs = np.asarray(t.line_segments)
+            self.rec.log(E["tracked_points"], rr.Points2D(np.asarray(uv, np.float32), colors=inlier_colors(
+                t.point_inlier), radii=rr.Radius.ui_points(3.5)))
+            self.rec.log(E["tracked_lines"], rr.LineStrips2D(_segments_2d(segs), colors=inlier_colors(
+                t.line_inlier), radii=rr.Radius.ui_points(2.5)))
+            counts.update(point_landmarks=len(uv), line_landmarks=len(segs), new_points=t.n_new_points,
+                          new_lines=t.n_new_lines)
+        self._scalars("tracking", counts)
+        status = getattr(t, "status", "reinitialised" if not t.ok else "tracked")
+        if status == "reinitialised" or not t.ok:
+            self._text(t.message or f"frame {t.frame_index}: tracking lost", rr.TextLogLevel.WARN)
+        elif status == "initialised":
+            self._text(f"frame {t.frame_index}: initialised from lidar depth ({getattr(t, 'n_new_points', 0)} point "
+                       f"and {getattr(t, 'n_new_lines', 0)} line landmarks)")
 
     def keyframe(self, kf: KeyframeResult) -> None:
-        if kf.T_world_cam is not None:
-            self._keyframes[kf.keyframe_id] = np.asarray(kf.T_world_cam)[:3, 3]
-        elif self._T_world_cam is not None:
-            self._keyframes[kf.keyframe_id] = self._T_world_cam[:3, 3]
-        self._text(f"keyframe {kf.keyframe_id}: {kf.reason}")
-        self._log_keyframes()
+        T = kf.T_world_cam if kf.T_world_cam is not None else self._T_world_cam
+        if T is not None:
+            self._trail.on_keyframe(kf.keyframe_id, kf.frame_index, T)
+            self._dirty = True
+        t = self._tracking
+        new = f": {t.n_new_points} new point and {t.n_new_lines} new line landmarks" \
+            if t is not None and hasattr(t, "n_new_points") else ""
+        self._text(f"frame {kf.frame_index}: keyframe {kf.keyframe_id} ({kf.reason}){new}")
+        fs = self._features
+        if fs is not None:  # raw LSD output: on keyframes only (~11 kB a frame otherwise)
+            self.rec.log(E["lsd_raw"], rr.LineStrips2D(_segments_2d(fs.raw_segments), colors=[RED],
+                                                       radii=rr.Radius.ui_points(1)))
         self._log_scan()
-        self._log_est()
-
-    def _log_keyframes(self) -> None:
-        if self._keyframes:
-            pos = np.array(list(self._keyframes.values()), np.float32)
-            self.rec.log(E["keyframes"], rr.Points3D(pos, colors=[ORANGE], radii=rr.Radius.ui_points(5)))
 
     def _log_scan(self) -> None:
         frame = self._frame
@@ -297,76 +332,104 @@ class RerunRecorder:
         self.rec.log(E["lidar"], _transform(self._T_world_cam @ frame.calib.T_cam_velo))
         self.rec.log(E["scan"], rr.Points3D(scan.astype(np.float32), colors=depth_colors(np.linalg.norm(scan, axis=1)),
                                             radii=rr.Radius.ui_points(1.5)))
-        if not self._have_depth_debug:
-            self._log_scan_overlay(frame)
+        self._overlay_pending = True  # the DepthDebug brings the projected scan; else it is made at the step's end
 
     def _log_scan_overlay(self, frame: Frame) -> None:
-        from plvo.geometry.camera import in_image, project
-        from plvo.geometry.se3 import transform_points
-
+        """The projected scan when the depth stage gave no DepthDebug (the no-depth-priors ablation)."""
         c = frame.calib
         pts = transform_points(c.T_cam_velo, frame.scan[thin(len(frame.scan), 4 * self.opt.overlay_max_points), :3])
         uv, z = project(c.K, pts)
         keep = in_image(uv, c.width, c.height) & (z > 0.5)
-        uv, z = uv[keep], z[keep]
+        self._log_overlay(uv[keep], z[keep])
+
+    def _log_overlay(self, uv: np.ndarray, z: np.ndarray) -> None:
         s = thin(len(uv), self.opt.overlay_max_points)
-        self.rec.log(E["lidar2d"], rr.Points2D(uv[s].astype(np.float32), colors=depth_colors(z[s]),
+        self.rec.log(E["lidar2d"], rr.Points2D(np.asarray(uv)[s].astype(np.float32), colors=depth_colors(z[s]),
                                                radii=rr.Radius.ui_points(1.5)))
 
-    def _log_est(self) -> None:
-        if self._est and not self._pose_from_gt:
-            est = np.array(self._est, np.float32)
-            est = np.vstack([est[thin(len(est), self.opt.trajectory_max_points)], est[-1:]])
-            self.rec.log(E["est"], rr.LineStrips3D([est], colors=[GREEN], radii=rr.Radius.ui_points(2)))
+    def depth(self, d: DepthPriors) -> None:
+        self._point_valid = np.asarray(d.point_valid)
+        self._scalars("depth", {"point_priors": int(np.sum(d.point_valid)), "line_priors": int(np.sum(d.line_valid))})
+        if self._T_world_cam is None:
+            return
+        T = self._T_world_cam  # the priors are in this keyframe's camera frame; drawn where the camera is
+        lines = np.asarray(d.line_endpoints, float)[d.line_valid].reshape(-1, 3)
+        self.rec.log(E["depth_lines"], rr.LineStrips3D(transform_points(T, lines).reshape(-1, 2, 3).astype(
+            np.float32), colors=[CYAN]))
+        fs = self._features
+        if fs is not None and len(fs.keypoints) == len(d.point_depth):
+            ok = d.point_valid
+            pts = transform_points(T, backproject(self._frame.calib.K, np.asarray(fs.keypoints, float)[ok],
+                                                  d.point_depth[ok]))
+            self.rec.log(E["depth_points"], rr.Points3D(pts.astype(np.float32), colors=[GREEN],
+                                                        radii=rr.Radius.ui_points(3)))
 
-    def tracking(self, t: TrackingResult) -> None:
-        self._pose_from_gt = False
-        self._set_camera(t.T_world_cam)
-        self._est.append(np.asarray(t.T_world_cam)[:3, 3])
-        tracked = np.asarray(t.point_inliers, int)
-        if self._keypoints is not None and len(tracked):
-            n = len(self._keypoints)
-            colors = np.tile(np.array(GREY, np.uint8), (n, 1))
-            colors[tracked] = GREEN
-            self.rec.log(E["orb"], rr.Points2D.from_fields(colors=colors))
-        self._scalars("tracking", {"point_matches": t.n_point_matches, "line_matches": t.n_line_matches,
-                                   "point_inliers": len(t.point_inliers), "line_inliers": len(t.line_inliers)})
-        if not t.ok:
-            self._text(f"tracking lost: {t.message}", rr.TextLogLevel.WARN)
+    def depth_debug(self, dbg: Any) -> None:
+        """plvo.depth.extract.DepthDebug: projected scan, searched patches, fitted planes (camera frame, pixels)."""
+        self._overlay_pending = False
+        self._log_overlay(np.asarray(dbg.scan_uv), np.asarray(dbg.scan_depth))
+        boxes = np.asarray(dbg.point_boxes, np.float32).reshape(-1, 4)
+        valid = self._point_valid if self._point_valid is not None and len(self._point_valid) == len(boxes) \
+            else np.zeros(len(boxes), bool)
+        self.rec.log(E["patches"], rr.Boxes2D(mins=boxes[:, :2], sizes=boxes[:, 2:] - boxes[:, :2],
+                                              colors=inlier_colors(valid)))
+        bands = np.asarray(dbg.line_bands, np.float32).reshape(-1, 4, 2)
+        self.rec.log(E["line_patches"], rr.LineStrips2D(np.concatenate([bands, bands[:, :1]], axis=1), colors=[CYAN]))
+        self._scalars("time/depth", dict(dbg.timings_ms))
+        quads = np.asarray(dbg.plane_quads, float).reshape(-1, 4, 3)
+        quads = quads[np.all(np.isfinite(quads), axis=(1, 2))]
+        if self._T_world_cam is not None and len(quads):
+            verts = transform_points(self._T_world_cam, quads.reshape(-1, 3)).astype(np.float32)
+            base = 4 * np.arange(len(quads))[:, None]
+            tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.uint32)
+            self.rec.log(E["planes"], rr.Mesh3D(vertex_positions=verts, triangle_indices=tris, albedo_factor=GREEN))
 
     def graph(self, g: GraphResult) -> None:
-        pos = np.asarray(g.T_world_cam, float)[:, :3, 3]
-        self._keyframes.update({int(k): p for k, p in zip(g.keyframe_ids, pos)})
-        self._log_keyframes()
+        poses = np.asarray(g.T_world_cam, float)
+        self._trail.on_graph(g.keyframe_ids, poses)  # drawn at the next keyframe (and on close)
         if len(g.edges):
-            strips = pos[np.asarray(g.edges)].astype(np.float32)
-            zeta = np.nan_to_num(np.asarray(g.zeta, float), nan=0.0)
-            t = zeta / zeta.max() if zeta.size and zeta.max() > 0 else np.zeros(len(strips))
-            colors = np.stack([255 * (1 - t), 80 + 175 * t, 60 * np.ones_like(t)], 1).astype(np.uint8)
-            colors[np.asarray(g.edge_kind) == EDGE_LOOP] = (255, 0, 255)
-            self.rec.log(E["graph"], rr.LineStrips3D(strips, colors=colors))
-        self._scalars("backend", {"scale": g.scale})
+            strips = poses[:, :3, 3][np.asarray(g.edges)].astype(np.float32)
+            self.rec.log(E["graph"], rr.LineStrips3D(strips, colors=zeta_colors(g.zeta, g.edge_kind),
+                                                     radii=rr.Radius.ui_points(2.5)))
+        self._scalars("backend", {"scale": g.scale, "edges": len(g.edges)})
 
     def map(self, m: MapResult) -> None:
-        self.rec.log(E["map_points"], rr.Points3D(np.asarray(m.points, np.float32), colors=[(230, 230, 230)],
+        self.rec.log(E["map_points"], rr.Points3D(np.asarray(m.points, np.float32), colors=[(150, 150, 160)],
                                                   radii=rr.Radius.ui_points(2)))
         self.rec.log(E["map_lines"], rr.LineStrips3D(np.asarray(m.lines, np.float32), colors=[CYAN]))
         self._scalars("map", {"points": len(m.points), "lines": len(m.lines)})
 
     def loop(self, lr: LoopResult) -> None:
         verdict = "accepted" if lr.accepted else "rejected"
-        self._text(f"loop {lr.query_keyframe}->{lr.match_keyframe} {verdict} (score {lr.score:.3f}, "
+        self._text(f"loop keyframe {lr.query_keyframe} -> {lr.match_keyframe} {verdict} (score {lr.score:.3f}, "
                    f"{lr.n_inliers} inliers): {lr.reason}", rr.TextLogLevel.INFO if lr.accepted else rr.TextLogLevel.DEBUG)
-        a, b = self._keyframes.get(lr.query_keyframe), self._keyframes.get(lr.match_keyframe)
-        if lr.accepted and a is not None and b is not None:
-            self._loops.append(np.array([a, b], np.float32))
-            self.rec.log(E["loops"], rr.LineStrips3D(self._loops, colors=[(255, 0, 255)], radii=rr.Radius.ui_points(3)))
+        kf = self._trail.kf_pose
+        if lr.accepted and lr.query_keyframe in kf and lr.match_keyframe in kf:
+            self._loops.append(np.array([kf[lr.query_keyframe][:3, 3], kf[lr.match_keyframe][:3, 3]], np.float32))
+            self.rec.log(E["loops"], rr.LineStrips3D(self._loops, colors=[MAGENTA], radii=rr.Radius.ui_points(3)))
 
     def timing(self, t: TimingResult) -> None:
+        """The last result of a step: the keyframes and the estimate are logged here, once a step."""
         self._scalars("time", {name: 1e3 * s for name, s in t.seconds.items()})
+        if self._overlay_pending and self._frame is not None:
+            self._overlay_pending = False
+            self._log_scan_overlay(self._frame)
+        self._log_dirty()
+        self._frames_since_flush += 1
+        if self._frames_since_flush >= self.opt.scalar_flush_frames:
+            self._flush_scalars()
 
     def metrics(self, m: MetricsResult) -> None:
-        self._scalars("misc", dict(m.values))
+        groups: dict[str, dict[str, float]] = defaultdict(dict)
+        for name, value in m.values.items():
+            if name.endswith("_ms"):
+                groups["time"][name[:-3].removeprefix("backend_")] = value
+            elif name.startswith("loop_"):
+                groups["loop"][name[5:]] = value
+            else:
+                groups["backend"][name] = value
+        for prefix, values in groups.items():
+            self._scalars(prefix, values)
 
 
 _HANDLERS = {

@@ -21,12 +21,15 @@ _SKIP = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
 class RrdData:
     """static: entity -> component -> value (a list, one item per instance batch).
     temporal: entity -> frame -> component -> value, later rows of a frame overriding earlier ones.
-    sensor_time: frame -> seconds. properties: "group:name" -> value, e.g. "plvo:git_revision"."""
+    sensor_time: frame -> seconds. properties: "group:name" -> value, e.g. "plvo:git_revision".
+    log: every TextLog row of the `log` entity in logging order, as (frame, level, text): several a frame, which the
+    latest-at view of `temporal` would fold into one."""
 
     static: dict[str, dict[str, Any]] = field(default_factory=dict)
     temporal: dict[str, dict[int, dict[str, Any]]] = field(default_factory=lambda: defaultdict(dict))
     sensor_time: dict[int, float] = field(default_factory=dict)
     properties: dict[str, Any] = field(default_factory=dict)
+    log: list[tuple[int, str, str]] = field(default_factory=list)
 
     def frames(self, entity: str | None = None) -> list[int]:
         """Sorted frame numbers with data (on `entity`, or on any entity)."""
@@ -83,6 +86,9 @@ def read_rrd(path: str | Path) -> RrdData:
                 out.sensor_time[int(f)] = _seconds(times[i])
     for _, entity, f, components in sorted(pending, key=lambda r: r[0]):  # row ids grow with logging order
         out.temporal[entity].setdefault(f, {}).update(components)
+        if entity == "/log" and components.get("TextLog:text"):
+            level = components.get("TextLog:level") or ["INFO"]
+            out.log.append((f, str(level[0]), str(components["TextLog:text"][0])))
     return out
 
 

@@ -8,12 +8,10 @@ shows (never what is recorded) so that it stays responsive on a whole sequence; 
 
 from __future__ import annotations
 
-import bisect
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -23,10 +21,14 @@ import viser.transforms as vtf
 
 from plvo.recording import RunInfo
 from plvo.types import Frame
-from plvo_app.rerun_recorder import GREEN, ORANGE, depth_colors, thin
+from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
+                                   load_rrd, thin, zeta_colors)
+
+__all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
 log = logging.getLogger(__name__)
 
+GT_COLOR = (60, 60, 60)  # dark grey: apart from the green estimate and the orange keyframes
 # layer name -> (GUI label, shown by default)
 LAYERS = {
     "scan": ("scan", True),
@@ -51,59 +53,6 @@ class ViewLimits:
     image_width: int = 480
 
 
-@dataclass
-class SceneStore:
-    """What the viewer can show, by frame. Thread-safe; each layer is a time series with latest-at lookup.
-
-    Layers: "pose" (4,4) T_world_cam; "image" JPEG bytes; "scan" ((N,3) float32 world, (N,3) uint8); "map_points"
-    (N,3); "map_lines" (M,2,3); "keyframes" (K,3); "graph" (E,2,3); "loops" (L,2,3); "est" (T,3); "log" str.
-    Static: gt (G,3) positions, K (3,3), width, height, name.
-    """
-
-    frames: list[int] = field(default_factory=list)
-    layers: dict[str, tuple[list[int], list[Any]]] = field(default_factory=dict)
-    gt: np.ndarray | None = None
-    K: np.ndarray | None = None
-    width: int = 0
-    height: int = 0
-    name: str = ""
-    lock: threading.RLock = field(default_factory=threading.RLock)
-
-    def add_frame(self, frame_index: int) -> None:
-        with self.lock:
-            if not self.frames or frame_index > self.frames[-1]:
-                self.frames.append(frame_index)
-            elif frame_index not in self.frames:
-                bisect.insort(self.frames, frame_index)
-
-    def put(self, layer: str, frame_index: int, value: Any) -> None:
-        with self.lock:
-            keys, values = self.layers.setdefault(layer, ([], []))
-            if keys and frame_index == keys[-1]:
-                values[-1] = value
-            elif not keys or frame_index > keys[-1]:
-                keys.append(frame_index)
-                values.append(value)
-            else:
-                i = bisect.bisect_left(keys, frame_index)
-                if i < len(keys) and keys[i] == frame_index:
-                    values[i] = value
-                else:
-                    keys.insert(i, frame_index)
-                    values.insert(i, value)
-
-    def latest(self, layer: str, frame_index: int) -> Any:
-        """The value of `layer` at or before `frame_index`, or None."""
-        with self.lock:
-            keys, values = self.layers.get(layer, ([], []))
-            i = bisect.bisect_right(keys, frame_index)
-            return values[i - 1] if i else None
-
-    def count(self, layer: str) -> int:
-        with self.lock:
-            return len(self.layers.get(layer, ([], []))[0])
-
-
 def _jpeg_small(image: np.ndarray, width: int) -> bytes:
     h, w = image.shape[:2]
     if w > width:
@@ -125,10 +74,13 @@ class ViserViewer:
         self._lock = threading.RLock()
         self._handles: dict[str, Any] = {}
         self._camera_placed = False
+        self._followed: np.ndarray | None = None  # camera position the browsers' views were last moved with
+        self._live = live
         self._stop = threading.Event()
         self._build_gui(live)
         self._player = threading.Thread(target=self._play_loop, name="viser-play", daemon=True)
         self._player.start()
+        self.server.on_client_connect(self._on_connect)
         self.refresh()
 
     @property
@@ -195,20 +147,56 @@ class ViserViewer:
                 self._place_camera(f)
             with self.server.atomic():
                 self._draw(f)
+            if self._live and self.follow.value:
+                self._follow(f)
             self.shown_frame = f  # after drawing: readers of shown_frame see a finished scene
             self.status.content = self._status_text(f, int(position))
 
+    @staticmethod
+    def _view_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position, look_at, up) of a browser view above and behind camera pose T, looking down the road."""
+        forward, up = T[:3, 2], -T[:3, 1]  # camera z forward, y down
+        return T[:3, 3] - 18.0 * forward + 14.0 * up, T[:3, 3] + 12.0 * forward, up
+
     def _place_camera(self, f: int) -> None:
-        """Start the browser's view above and behind the first camera pose, looking down the road."""
+        """The view a new browser starts with: behind the first camera pose shown."""
         T = self.store.latest("pose", f)
         if T is None:
             return
-        forward, up = T[:3, 2], -T[:3, 1]  # camera z forward, y down
         cam = self.server.initial_camera
-        cam.position = tuple(T[:3, 3] - 18.0 * forward + 14.0 * up)
-        cam.look_at = tuple(T[:3, 3] + 12.0 * forward)
-        cam.up = tuple(up)
+        position, look_at, up = self._view_of(T)
+        cam.position, cam.look_at, cam.up = tuple(position), tuple(look_at), tuple(up)
         self._camera_placed = True
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        """A browser joining later (e.g. after a live run) starts behind the frame on screen, not the first one."""
+        T = None if self.shown_frame is None else self.store.latest("pose", self.shown_frame)
+        if T is None:
+            return
+        position, look_at, up = self._view_of(T)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 5.0:  # the client reports its camera shortly after connecting
+            try:
+                client.camera.up_direction = up
+                client.camera.position = position
+                client.camera.look_at = look_at
+                return
+            except AssertionError:
+                time.sleep(0.05)
+
+    def _follow(self, f: int) -> None:
+        """While following a live run, move every browser's view along with the camera (keeping its angle)."""
+        T = self.store.latest("pose", f)
+        if T is None:
+            return
+        if self._followed is not None:
+            delta = T[:3, 3] - self._followed
+            for client in self.server.get_clients().values():
+                try:
+                    client.camera.position = client.camera.position + delta  # moves look_at along
+                except AssertionError:  # camera not reported yet
+                    pass
+        self._followed = T[:3, 3].copy()
 
     def _status_text(self, f: int, position: int) -> str:
         msg = self.store.latest("log", f) or ""
@@ -236,27 +224,32 @@ class ViserViewer:
             "/map/points", pts[thin(len(pts), lim.map_points)], (70, 70, 90), point_size=0.1, precision="float32",
             point_shape="circle"))
         self._segments("map_lines", "/map/lines", s.latest("map_lines", f), on["map_lines"], (40, 200, 230))
-        self._segments("graph", "/graph", s.latest("graph", f), on["graph"], (255, 170, 0))
+        graph = s.latest("graph", f)
+        self._segments("graph", "/graph", None if graph is None else graph[0], on["graph"],
+                       None if graph is None else np.repeat(graph[1][:, None], 2, axis=1), 0.08)
         kfs = s.latest("keyframes", f)
         self._set("keyframes", on["graph"] and kfs is not None and len(kfs), lambda: scene.add_point_cloud(
             "/keyframes", np.asarray(kfs, np.float32), ORANGE, point_size=0.4, precision="float32", point_shape="circle"))
         self._segments("loops", "/loops", s.latest("loops", f), on["loops"], (255, 0, 255), 0.15)
-        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], ORANGE)
+        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 0.08)
         self._polyline("est", "/trajectory/est", s.latest("est", f), on["est"], GREEN)
         self._camera(f, on["camera"])
 
     def _segments(self, key: str, name: str, segs: np.ndarray | None, visible: bool, color, width: float = 0.05):
         ok = visible and segs is not None and len(segs) > 0
+        if ok and np.ndim(color) == 3:  # per-segment colours, thinned with their segments
+            color = np.asarray(color, np.uint8)[thin(len(segs), self.limits.lines)]
         self._set(key, ok, lambda: self.server.scene.add_line_segments(
             name, np.asarray(segs, np.float32)[thin(len(segs), self.limits.lines)], color, thickness=width))
 
-    def _polyline(self, key: str, name: str, pts: np.ndarray | None, visible: bool, color) -> None:
+    def _polyline(self, key: str, name: str, pts: np.ndarray | None, visible: bool, color,
+                  width: float = 0.15) -> None:
         if pts is None or len(pts) < 2:
             self._set(key, False, lambda: None)
             return
         p = np.asarray(pts, np.float32)
         p = np.vstack([p[thin(len(p), self.limits.trajectory_points)], p[-1:]])
-        self._segments(key, name, np.stack([p[:-1], p[1:]], axis=1), visible, color, 0.15)
+        self._segments(key, name, np.stack([p[:-1], p[1:]], axis=1), visible, color, width)
 
     def _camera(self, f: int, visible: bool) -> None:
         s = self.store
@@ -281,7 +274,10 @@ class ViserViewer:
 
 
 class ViserRecorder:
-    """A Recorder feeding a live ViserViewer: converts stage results into SceneStore layers as they come."""
+    """A Recorder feeding a live ViserViewer: converts stage results into SceneStore layers as they come.
+
+    The estimate is put on keyframes (and back-end refinements) only, thinned: a copy a frame would grow the store
+    quadratically over a whole sequence."""
 
     def __init__(self, viewer: ViserViewer, min_interval_s: float = 0.1):
         self.viewer = viewer
@@ -289,133 +285,79 @@ class ViserRecorder:
         self.min_interval_s = min_interval_s
         self._frame: Frame | None = None
         self._pose: np.ndarray | None = None
-        self._pose_from_gt = False
-        self._est: list[np.ndarray] = []
-        self._keyframes: dict[int, np.ndarray] = {}
+        self._trail = EstimateTrail()
         self._loops: list[np.ndarray] = []
         self._last_refresh = 0.0
 
     def on_run_start(self, info: RunInfo) -> None:
         s = self.store
         s.name, s.K, s.width, s.height = info.name, info.calib.K, info.calib.width, info.calib.height
-        if info.gt_T_world_cam is not None:
-            s.gt = np.asarray(info.gt_T_world_cam)[:, :3, 3].astype(np.float32)
-        self._pose_from_gt = not info.extra.get("has_odometry", True)
+        gt = gt_in_estimate_world(info)
+        if gt is not None:
+            s.gt = gt[:, :3, 3].astype(np.float32)
 
     def on_frame(self, frame: Frame) -> None:
         self._frame = frame
         self.store.put("image", frame.index, _jpeg_small(frame.image, 2 * self.viewer.limits.image_width))
-        if self._pose_from_gt and frame.gt_T_world_cam is not None:
-            self._pose = np.asarray(frame.gt_T_world_cam, float)
-            self.store.put("pose", frame.index, self._pose)
-        self.store.add_frame(frame.index)
-        now = time.monotonic()
-        if now - self._last_refresh >= self.min_interval_s:
-            self._last_refresh = now
-            self.viewer.refresh()
 
     def on_stage(self, frame_index: int, result: Any) -> None:
-        known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult")
+        known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult", "TimingResult")
         # along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult)
         name = next((c.__name__ for c in type(result).__mro__ if c.__name__ in known), "")
         s = self.store
         if name == "TrackingResult":
-            self._pose_from_gt = False
             self._pose = np.asarray(result.T_world_cam, float)
             s.put("pose", frame_index, self._pose)
-            self._est.append(self._pose[:3, 3].astype(np.float32))
-            s.put("est", frame_index, np.array(self._est))
+            self._trail.on_tracking(frame_index, self._pose)
             if not result.ok:
-                s.put("log", frame_index, f"tracking lost: {result.message}")
+                s.put("log", frame_index, result.message or "tracking lost")
         elif name == "KeyframeResult":
             self._keyframe(frame_index, result)
         elif name == "MapResult":
             s.put("map_points", frame_index, np.asarray(result.points, np.float32))
             s.put("map_lines", frame_index, np.asarray(result.lines, np.float32))
         elif name == "GraphResult":
-            pos = np.asarray(result.T_world_cam, float)[:, :3, 3]
-            self._keyframes.update({int(k): p for k, p in zip(result.keyframe_ids, pos)})
-            s.put("keyframes", frame_index, np.array(list(self._keyframes.values()), np.float32))
+            poses = np.asarray(result.T_world_cam, float)
+            self._trail.on_graph(result.keyframe_ids, poses)
+            self._put_estimate(frame_index)
             if len(result.edges):
-                s.put("graph", frame_index, pos[np.asarray(result.edges)].astype(np.float32))
+                s.put("graph", frame_index, (poses[:, :3, 3][np.asarray(result.edges)].astype(np.float32),
+                                             zeta_colors(result.zeta, result.edge_kind)))
         elif name == "LoopResult" and result.accepted:
-            a, b = self._keyframes.get(result.query_keyframe), self._keyframes.get(result.match_keyframe)
-            if a is not None and b is not None:
-                self._loops.append(np.array([a, b], np.float32))
+            kf = self._trail.kf_pose
+            if result.query_keyframe in kf and result.match_keyframe in kf:
+                self._loops.append(np.array([kf[result.query_keyframe][:3, 3], kf[result.match_keyframe][:3, 3]],
+                                            np.float32))
                 s.put("loops", frame_index, np.array(self._loops))
+        elif name == "TimingResult":  # the end of a step: the frame is complete, show it
+            self._frame_done(frame_index)
+
+    def _frame_done(self, frame_index: int) -> None:
+        self.store.add_frame(frame_index)
+        now = time.monotonic()
+        if now - self._last_refresh >= self.min_interval_s:
+            self._last_refresh = now
+            self.viewer.refresh()
+
+    def _put_estimate(self, frame_index: int) -> None:
+        s = self.store
+        s.put("keyframes", frame_index, self._trail.keyframe_positions().astype(np.float32))
+        est = self._trail.positions().astype(np.float32)
+        if len(est):
+            s.put("est", frame_index, np.vstack([est[thin(len(est), self.viewer.limits.trajectory_points)], est[-1:]]))
 
     def _keyframe(self, frame_index: int, kf: Any) -> None:
-        pose = kf.T_world_cam if kf.T_world_cam is not None else self._pose
+        pose = np.asarray(kf.T_world_cam if kf.T_world_cam is not None else self._pose, float)
         frame = self._frame
         self.store.put("log", frame_index, f"keyframe {kf.keyframe_id}: {kf.reason}")
-        if pose is None or frame is None:
+        self._trail.on_keyframe(kf.keyframe_id, frame_index, pose)
+        self._put_estimate(frame_index)
+        if frame is None:
             return
-        self._keyframes[kf.keyframe_id] = np.asarray(pose)[:3, 3]
-        self.store.put("keyframes", frame_index, np.array(list(self._keyframes.values()), np.float32))
         scan = frame.scan[thin(len(frame.scan), self.viewer.limits.scan_points), :3].astype(np.float64)
-        T = np.asarray(pose) @ frame.calib.T_cam_velo
+        T = pose @ frame.calib.T_cam_velo
         world = (scan @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
         self.store.put("scan", frame_index, (world, depth_colors(np.linalg.norm(scan, axis=1))))
 
     def close(self) -> None:
         self.viewer.refresh()
-
-
-def _unpack_colors(values: list[int]) -> np.ndarray:
-    """Rerun's packed 0xRRGGBBAA colours -> (N,3) uint8."""
-    c = np.asarray(values, np.uint32)
-    return np.stack([(c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255], axis=1).astype(np.uint8)
-
-
-def load_rrd(path: str | Path) -> SceneStore:
-    """Read a plvo .rrd (also one cut short by Ctrl-C) into a SceneStore. See rerun_reader.read_entities."""
-    from plvo_app.rrd_reader import read_rrd
-
-    data = read_rrd(path)
-    store = SceneStore(name=data.properties.get("plvo:sequence", Path(path).stem))
-    pin = data.static.get("/world/camera/image", {})
-    if "Pinhole:image_from_camera" in pin:
-        store.K = np.asarray(pin["Pinhole:image_from_camera"][0], float).reshape(3, 3).T  # column-major
-        store.width, store.height = (int(v) for v in pin["Pinhole:resolution"][0])
-    gt = data.static.get("/world/trajectory/gt", {}).get("LineStrips3D:strips")
-    if gt:
-        store.gt = np.asarray(gt[0], np.float32)
-    for f in data.frames():
-        store.add_frame(f)
-    for f, row in data.rows("/world/camera"):
-        store.put("pose", f, _pose_from_row(row))
-    for f, row in data.rows("/world/camera/image"):
-        if row.get("EncodedImage:blob"):
-            store.put("image", f, bytes(row["EncodedImage:blob"][0]))
-    lidar = dict(data.rows("/world/lidar"))
-    for f, row in data.rows("/world/lidar/scan"):
-        T = _pose_from_row(lidar[f]) if f in lidar else np.eye(4)
-        pts = np.asarray(row["Points3D:positions"], np.float64).reshape(-1, 3)
-        colors = _unpack_colors(row["Points3D:colors"]) if row.get("Points3D:colors") else np.full_like(pts, 200, np.uint8)
-        if len(colors) != len(pts):
-            colors = np.broadcast_to(colors[:1], pts.shape).copy()
-        store.put("scan", f, ((pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32), colors))
-    for layer, entity, key in [("map_points", "/world/map/points", "Points3D:positions"),
-                               ("keyframes", "/world/keyframes", "Points3D:positions"),
-                               ("map_lines", "/world/map/lines", "LineStrips3D:strips"),
-                               ("graph", "/world/graph", "LineStrips3D:strips"),
-                               ("loops", "/world/loops", "LineStrips3D:strips")]:
-        for f, row in data.rows(entity):
-            if row.get(key) is not None:
-                store.put(layer, f, np.asarray(row[key], np.float32))
-    for f, row in data.rows("/world/trajectory/est"):
-        if row.get("LineStrips3D:strips"):
-            store.put("est", f, np.asarray(row["LineStrips3D:strips"][0], np.float32))
-    for f, row in data.rows("/log"):
-        if row.get("TextLog:text"):
-            store.put("log", f, str(row["TextLog:text"][0]))
-    return store
-
-
-def _pose_from_row(row: dict[str, Any]) -> np.ndarray:
-    T = np.eye(4)
-    if row.get("Transform3D:mat3x3"):
-        T[:3, :3] = np.asarray(row["Transform3D:mat3x3"][0], float).reshape(3, 3).T  # Rerun stores column-major
-    if row.get("Transform3D:translation"):
-        T[:3, 3] = np.asarray(row["Transform3D:translation"][0], float)
-    return T

@@ -4,20 +4,27 @@ from __future__ import annotations
 
 import numpy as np
 
+from plvo.depth.extract import DepthDebug
 from plvo.geometry.se3 import exp
 from plvo.recording import RunInfo
 from plvo.results import (EDGE_LOOP, EDGE_ODOMETRY, GraphResult, KeyframeResult, LoopResult, MapResult,
-                          TimingResult, TrackingResult)
+                          MetricsResult, TimingResult)
+from plvo.tracking.frontend import FrontendResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame
 
 K = np.array([[700.0, 0, 600], [0, 700, 180], [0, 0, 1]])
 T_CAM_VELO = np.array([[0, -1, 0, 0], [0, 0, -1, -0.08], [1, 0, 0, -0.27], [0, 0, 0, 1]], float)
 CALIB = Calibration(K=K, T_cam_velo=T_CAM_VELO, width=1200, height=360)
+LOST_FRAME = 4  # tracking is lost and re-initialised here (a keyframe)
 
 
 def pose(i: int) -> np.ndarray:
     """A curving drive: 1 m forward a frame and a yaw that grows, so rotations are far from symmetric."""
     return exp(np.array([0.2 * i, 0.0, 1.0 * i, 0.1, 0.03 * i, 0.05]))
+
+
+def keyframe_frames(n: int, every: int = 3) -> list[int]:
+    return sorted({i for i in range(n) if i % every == 0} | ({LOST_FRAME} if LOST_FRAME < n else set()))
 
 
 def frame(i: int, rng: np.random.Generator) -> Frame:
@@ -35,6 +42,22 @@ def features(rng: np.random.Generator, n: int = 50) -> FeatureSet:
                       np.zeros((10, 32), np.uint8), raw, tuple(np.array([j, j + 10]) for j in range(10)), (1200, 360))
 
 
+def tracking(i: int, fs: FeatureSet, is_kf: bool) -> FrontendResult:
+    """20 landmark matches of which the even ones are inliers, 4 line matches with 3 inliers; lost at LOST_FRAME."""
+    lost, first = i == LOST_FRAME, i == 0
+    p_in = np.arange(20) % 2 == 0
+    l_in = np.array([True, True, True, False])
+    if lost or first:
+        p_in, l_in = np.zeros(0, bool), np.zeros(0, bool)
+    status = "initialised" if first else "reinitialised" if lost else "tracked"
+    msg = f"frame {i}: tracking lost (too few matches); re-initialised from the current lidar depth" if lost else "ok"
+    return FrontendResult(i, pose(i), 40, 8, np.flatnonzero(p_in), np.flatnonzero(l_in), is_kf, not lost, msg,
+                          status=status, keyframe_reason="lost" if lost else "every 3" if is_kf else "",
+                          point_uv=fs.keypoints[:len(p_in)], point_landmark=np.arange(len(p_in)), point_inlier=p_in,
+                          line_segments=fs.segments[:len(l_in)], line_landmark=np.arange(len(l_in)),
+                          line_inlier=l_in, n_new_points=30 if is_kf else 0, n_new_lines=5 if is_kf else 0)
+
+
 def depth(n_points: int = 50) -> DepthPriors:
     d = np.full(n_points, 10.0)
     reason = np.zeros(n_points, int)
@@ -44,35 +67,57 @@ def depth(n_points: int = 50) -> DepthPriors:
                        lines, np.zeros(10, int), np.zeros(10), np.full(10, 8))
 
 
-def run_info(n: int, has_odometry: bool = True) -> RunInfo:
+def depth_debug(rng: np.random.Generator, n_points: int = 50) -> DepthDebug:
+    uv = rng.uniform([0, 0], [1200, 360], (800, 2))
+    boxes = np.concatenate([uv[:n_points] - 5, uv[:n_points] + 5], 1)
+    quads = np.tile(np.array([[-1, -1, 10], [1, -1, 10], [1, 1, 10], [-1, 1, 10]], float), (n_points, 1, 1))
+    quads[1::2] = np.nan
+    bands = np.tile(np.array([[0, 0], [60, 0], [60, 6], [0, 6]], float), (10, 1, 1))
+    return DepthDebug(uv, rng.uniform(3, 60, 800), boxes, bands, quads, np.zeros(n_points), np.zeros(10),
+                      np.zeros(10), {"projection": 2.0, "points": 3.0})
+
+
+def run_info(n: int) -> RunInfo:
     gt = np.array([pose(i) for i in range(n)])
     return RunInfo("fake_run", "fake", CALIB, tuple(range(n)), gt, {"orb": {"n_features": 50}}, "0.1.0", "abc123",
-                   "plvo-viz --seq fake", {"config_toml": "[orb]\nn_features = 50\n", "has_odometry": has_odometry})
+                   "plvo-viz --seq fake", {"config_toml": "[orb]\nn_features = 50\n"})
 
 
-def drive(recorder, n: int = 9, every: int = 3) -> None:
-    """Feed `recorder` n frames of every result kind; keyframes every `every` frames, a loop at the end."""
+def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1) -> None:
+    """Feed `recorder` n frames as plvo.system.System does: keyframes every `every` frames (and at LOST_FRAME),
+    the back end's results `backend_lag` frames late (at the keyframe's frame index), a loop at the end."""
     rng = np.random.default_rng(0)
     recorder.on_run_start(run_info(n))
-    kf_ids: list[int] = []
+    kfs = keyframe_frames(n, every)
+    pending: list[tuple[int, object]] = []
     for i in range(n):
         recorder.on_frame(frame(i, rng))
-        recorder.on_stage(i, features(rng))
-        is_kf = i % every == 0
-        recorder.on_stage(i, TrackingResult(i, pose(i), 40, 8, np.arange(0, 50, 2), np.arange(5), is_kf, True,
-                                            "ok"))
+        fs = features(rng)
+        recorder.on_stage(i, fs)
+        is_kf = i in kfs
+        recorder.on_stage(i, tracking(i, fs, is_kf))
         if is_kf:
-            kf_ids.append(len(kf_ids))
-            recorder.on_stage(i, KeyframeResult(i, kf_ids[-1], pose(i), "every 3"))
+            k = kfs.index(i)
+            recorder.on_stage(i, KeyframeResult(i, k, pose(i), "lost" if i == LOST_FRAME else "every 3"))
             recorder.on_stage(i, depth())
-            poses = np.array([pose(every * k) for k in kf_ids])
-            edges = np.array([[k, k + 1] for k in range(len(kf_ids) - 1)], int).reshape(-1, 2)
-            recorder.on_stage(i, GraphResult(i, np.array(kf_ids), poses, edges, np.full(len(edges), EDGE_ODOMETRY),
-                                             np.linspace(0, 1, len(edges)), 1.0))
-            pts = rng.uniform(-20, 20, (200 * len(kf_ids), 3))
-            recorder.on_stage(i, MapResult(i, pts, pts[:30].reshape(-1, 2, 3)))
+            recorder.on_stage(i, depth_debug(rng))
+            poses = np.array([pose(f) for f in kfs[:k + 1]])
+            edges = np.array([[j, j + 1] for j in range(k)], int).reshape(-1, 2)
+            pts = rng.uniform(-20, 20, (200 * (k + 1), 3))
+            pending += [(i, GraphResult(i, np.arange(k + 1), poses, edges, np.full(len(edges), EDGE_ODOMETRY),
+                                        np.linspace(0, 0.2, len(edges)), 1.0)),
+                        (i, MapResult(i, pts, pts[:30].reshape(-1, 2, 3))),
+                        (i, MetricsResult(i, {"scale_factor": 1.0, "backend_bundle_adjustment_ms": 5.0,
+                                              "loop_candidates": 0.0}))]
+        due = [(f, r) for f, r in pending if f <= i - backend_lag]
+        pending = [(f, r) for f, r in pending if f > i - backend_lag]
+        for f, r in due:
+            recorder.on_stage(f, r)
         recorder.on_stage(i, TimingResult(i, {"features": 0.05, "total": 0.08}))
-    last = n - 1
-    recorder.on_stage(last, LoopResult(last, kf_ids[-1], 0, True, 0.5, 40, np.eye(4), "verified"))
-    recorder.on_stage(last, GraphResult(last, np.array(kf_ids), np.array([pose(every * k) for k in kf_ids]),
-                                        np.array([[len(kf_ids) - 1, 0]]), np.array([EDGE_LOOP]), np.array([1.0])))
+    last, k = n - 1, len(kfs) - 1
+    for f, r in pending:  # System.finish(): the workers' last results
+        recorder.on_stage(f, r)
+    recorder.on_stage(kfs[-1], LoopResult(kfs[-1], k, 0, True, 0.5, 40, np.eye(4), "verified"))
+    recorder.on_stage(kfs[-1], GraphResult(kfs[-1], np.arange(k + 1), np.array([pose(f) for f in kfs]),
+                                           np.array([[k, 0]]), np.array([EDGE_LOOP]), np.array([np.nan])))
+    assert last >= kfs[-1]

@@ -62,6 +62,24 @@ def replay_viewer(tmp_path_factory):
     viewer.close()
 
 
+def _until(grab, cond, timeout: float = 15.0):
+    """grab() until cond(result) holds or the timeout passes; returns the last result (the caller asserts)."""
+    t0 = time.time()
+    while True:
+        out = grab()
+        if cond(out) or time.time() - t0 > timeout:
+            return out
+        time.sleep(0.2)
+
+
+def _n_colours(img: np.ndarray) -> int:
+    return len(np.unique(img.reshape(-1, 3), axis=0))
+
+
+def _changed(a: np.ndarray, b: np.ndarray) -> float:
+    return float((np.abs(a.astype(int) - b.astype(int)).max(axis=2) > 30).mean())
+
+
 def _scene_pixels(page, path: Path) -> np.ndarray:
     import cv2
 
@@ -77,11 +95,12 @@ def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay
     page.wait_for_selector("canvas", timeout=30000)
     assert _wait(lambda: len(v.server.get_clients()) == 1)
     page.get_by_text("Connected").wait_for(timeout=20000)
-    time.sleep(3)  # let the scene arrive and render
-    first = _scene_pixels(page, tmp_path / "first.png")
+    # the scene arrives and renders asynchronously: poll the canvas rather than sleeping a fixed time
+    first = _until(lambda: _scene_pixels(page, tmp_path / "first.png"),
+                   lambda img: np.any(img < 235, axis=2).mean() > 0.02 and _n_colours(img) > 50)
     drawn = np.any(first < 235, axis=2).mean()  # the background is white
     assert drawn > 0.02, f"scene looks blank: {drawn:.3%} of the canvas drawn"
-    assert len(np.unique(first.reshape(-1, 3), axis=0)) > 50  # colours of scan, map, image, not a flat fill
+    assert _n_colours(first) > 50  # colours of scan, map, image, not a flat fill
 
     slider = page.get_by_role("slider").first
     assert slider.get_attribute("aria-valuenow") == "0" and v.shown_frame == 0
@@ -91,9 +110,8 @@ def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay
     assert _wait(lambda: v.slider.value == 6 and v.shown_frame == 6), (v.slider.value, v.shown_frame)
     np.testing.assert_allclose(v._handles["camera"].position, pose(6)[:3, 3], atol=1e-4)
     page.get_by_text("frame 6 (7/9)").wait_for(timeout=10000)
-    time.sleep(2)
-    moved = _scene_pixels(page, tmp_path / "moved.png")
-    assert np.abs(moved.astype(int) - first.astype(int)).max(axis=2).__gt__(30).mean() > 0.005
+    moved = _until(lambda: _scene_pixels(page, tmp_path / "moved.png"), lambda img: _changed(img, first) > 0.005)
+    assert _changed(moved, first) > 0.005
 
     page.get_by_role("checkbox", name="scan").uncheck()
     assert _wait(lambda: not v.toggles["scan"].value and "scan" not in v._handles)
