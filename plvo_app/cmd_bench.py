@@ -1,0 +1,196 @@
+"""Time plvo's stages and the whole system on KITTI-sized input; write the figures as JSON.
+
+Per stage (stable names): features (ORB + LSD + repair + LBD) and its parts features_orb, features_lsd,
+features_repair, features_lbd, features_1241x376 (the budget's image size), matching, depth, registration,
+measured on their own; pnpl, matching_pnpl, scale_correction, bundle_adjustment, scale_correction_ba, backend,
+loop_query, loop_verify, loop_correct, loop, as the System records them in a whole run. Each has n, median_ms,
+p90_ms, mean_ms, max_ms and the design's budget with within_budget (median). The whole system: frames a second
+with recording off and with a Rerun recording on (the overhead in %, .rrd bytes a frame); peak memory; the
+machine, its load average and thread settings, library versions, git revision and command line.
+
+Default input: the real frames of KITTI odometry sequence 04 in ../shared/data/kitti (or $KITTI_ROOT), else the
+first 51 frames of the embedded synthetic town. Example:
+  plvo bench --root ../shared/data/kitti --seq 04 --out results/bench/04.json
+  plvo bench --stages features,matching --frames 0:10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import platform
+import shlex
+import sys
+import tempfile
+import time
+from importlib import metadata
+from pathlib import Path
+
+from plvo.atomic import write_text_atomic
+from plvo.config import config_to_dict, config_to_toml, load_config
+from plvo.errors import DatasetError
+from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
+from plvo.recording import RunInfo
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_KITTI = REPO.parent / "shared" / "data" / "kitti"
+SYNTH_DEFAULT_FRAMES = "0:51"  # as many as the shared real frames
+THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+VERSION_OF = {"plvo": "plvo", "numpy": "numpy", "scipy": "scipy", "opencv": "opencv-contrib-python-headless",
+              "open3d": "open3d", "gtsam": "gtsam", "poselib": "poselib", "rerun": "rerun-sdk", "psutil": "psutil"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = __doc__.strip()
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--root", type=Path, help="KITTI root (sequences/NN); default $KITTI_ROOT, else "
+                     "../shared/data/kitti beside the repository, else the synthetic town")
+    src.add_argument("--synth", type=Path, metavar="DIR", help="a synthetic sequence root written by `plvo synth`")
+    p.add_argument("--seq", default=None, help="sequence (default 04 for KITTI, the first one under --synth)")
+    p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (default all; synthetic: 0:51)")
+    p.add_argument("--out", type=Path, metavar="FILE.json", help="where to write the JSON "
+                   "(default results/bench/<seq>_<time>.json)")
+    p.add_argument("--repeat", type=int, default=1, metavar="N", help="time each stage N times a frame and run "
+                   "the whole system N times each way (default 1)")
+    p.add_argument("--stages", default="all", help=f"all, or a comma list of {','.join(STAGE_GROUPS)}; "
+                   "backend, loop and system run the whole system (system also with recording on)")
+    p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
+
+
+def _open(args: argparse.Namespace):
+    """(dataset, its root) the arguments name; see add_arguments for the defaults."""
+    from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
+
+    frames = parse_frames(args.frames) if args.frames else None
+    if args.synth is not None:
+        if not (args.synth / "sequences").is_dir():
+            raise DatasetError(f"--synth {args.synth}: no sequences/ folder (write one with `plvo synth --out DIR`)")
+        seq = args.seq or sorted(q.name for q in (args.synth / "sequences").iterdir())[0]
+        return open_dataset(args.synth, seq, frames), args.synth
+    if args.root is not None or os.environ.get(ROOT_ENV):
+        root = args.root or Path(os.environ[ROOT_ENV])
+        return open_dataset(root, args.seq or "04", frames), root
+    if (SHARED_KITTI / "sequences" / (args.seq or "04")).is_dir():
+        return open_dataset(SHARED_KITTI, args.seq or "04", frames), SHARED_KITTI
+    from plvo.data.synth import DEFAULT_SEQUENCE, default_sequence_root
+
+    log.info("no KITTI frames found: benchmarking the synthetic town (generated on first use)")
+    root = default_sequence_root()
+    return open_dataset(root, DEFAULT_SEQUENCE, frames or parse_frames(SYNTH_DEFAULT_FRAMES)), root
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_info() -> dict:
+    """CPU model, core counts, memory, load average now, thread settings (environment and OpenCV's)."""
+    import cv2
+    import psutil
+
+    return {"cpu_model": _cpu_model(), "cpu_count": os.cpu_count(),
+            "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+            "mem_total_mb": round(psutil.virtual_memory().total / 2**20), "platform": platform.platform(),
+            "python": platform.python_version(), "load_avg_start": [round(x, 2) for x in os.getloadavg()],
+            "threads": {**{k: os.environ.get(k) for k in THREAD_ENV}, "opencv_num_threads": cv2.getNumThreads()}}
+
+
+def versions() -> dict[str, str | None]:
+    """Installed versions of plvo and of the libraries that set its speed."""
+    out: dict[str, str | None] = {}
+    for key, dist in VERSION_OF.items():
+        try:
+            out[key] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[key] = None
+    return out
+
+
+def _rerun_factory(folder: Path):
+    from plvo_app.rerun_recorder import RerunRecorder
+
+    def make(run: int):
+        path = folder / f"bench_{run}.rrd"
+        return RerunRecorder(path), path
+
+    return make
+
+
+def run(args: argparse.Namespace) -> int:
+    from plvo_app.cmd_viz import git_revision, plvo_version
+
+    stages = parse_stages(args.stages)  # bad arguments fail before any work
+    cfg = load_config(args.config)
+    dataset, root = _open(args)
+    out = args.out or Path("results") / "bench" / f"{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
+    machine = machine_info()
+    command = shlex.join(sys.argv)
+    info = RunInfo(name="bench", sequence=dataset.sequence, calib=dataset.calib,
+                   frame_indices=dataset.frame_indices, gt_T_world_cam=dataset.gt_T_world_cam,
+                   config=config_to_dict(cfg), version=plvo_version(), git_revision=git_revision(),
+                   command_line=command, extra={"config_toml": config_to_toml(cfg)})
+    with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
+        report = run_bench(dataset, cfg, stages, args.repeat, _rerun_factory(Path(tmp)), info)
+    machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
+    options = {k: str(v) if isinstance(v, Path) else v for k, v in sorted(vars(args).items())}
+    head = {"schema": report["schema"], "created_utc": report["created_utc"], "command_line": command,
+            "options": options, "git_revision": info.git_revision, "versions": versions(), "machine": machine}
+    report = {**head, **report, "input": {**report["input"], "root": str(root)}}
+    write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
+    print(format_table(report))
+    print(f"written: {out}")
+    return 0
+
+
+def _finite(obj):
+    """NaN and infinities become null: the file stays strict JSON."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
+def format_table(report: dict) -> str:
+    """A short human summary of a bench report."""
+    m, inp = report["machine"], report["input"]
+    lines = [f"plvo bench: {inp['dataset']} {inp['sequence']} frames {inp['frames']} ({inp['image_size'][0]}x"
+             f"{inp['image_size'][1]}, ~{inp['scan_points_median']} scan points); {m['cpu_model']}, "
+             f"{m['cpu_count']} cores, load {m['load_avg_start'][0]:.1f} -> {m['load_avg_end'][0]:.1f}",
+             f"{'stage':22s} {'source':8s} {'n':>4s} {'median':>8s} {'p90':>8s} {'max':>8s} {'budget':>7s}  ok"]
+    for name, s in report["stages"].items():
+        ok = {None: "", True: "yes", False: "NO"}[s["within_budget"]]
+        lines.append(f"{name:22s} {s['source']:8s} {s['n']:4d} {_ms(s['median_ms']):>8s} {_ms(s['p90_ms']):>8s} "
+                     f"{_ms(s['max_ms']):>8s} {_ms(s['budget_ms']):>7s}  {ok}")
+    sysfig = report.get("system")
+    if sysfig:
+        off = sysfig["recording_off"]
+        lines.append(f"whole system, recording off: {off['fps']:.2f} frames/s (budget >= {off['fps_budget']:g})")
+        on = sysfig.get("recording_on")
+        if on:
+            lines.append(f"whole system, recording on:  {on['fps']:.2f} frames/s, overhead "
+                         f"{sysfig.get('recording_overhead_pct', float('nan')):.1f} % (budget <= "
+                         f"{sysfig.get('recording_overhead_budget_pct', 25):g} %), "
+                         f"{on['rrd_bytes_per_frame'] or 0:,} bytes of .rrd a frame")
+    mem = report["memory"]
+    lines.append(f"peak memory: {mem['ru_maxrss_mb']:.0f} MB (ru_maxrss), {mem['sampled_peak_mb']:.0f} MB sampled; "
+                 f"bench took {report['duration_s']:.0f} s")
+    return "\n".join(lines)

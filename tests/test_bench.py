@@ -1,0 +1,118 @@
+"""`plvo bench`: stable JSON keys with positive figures, atomic output, one-line errors (exit 2).
+
+These check the bench's bookkeeping on a few frames, never the speed itself (the design: speed is measured by
+`plvo bench`, not by timed tests).
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from plvo.errors import ConfigError
+from plvo.eval.bench import BUDGET_MS, parse_stages, stage_stats
+from plvo_app import cmd_bench
+from plvo_app.cli import main
+
+STAT_KEYS = {"source", "n", "median_ms", "p90_ms", "mean_ms", "max_ms", "budget_ms", "within_budget"}
+
+
+def test_stage_stats_figures_and_budget():
+    s = stage_stats([k * 1e-3 for k in range(1, 11)], budget_ms=5.0)  # 1..10 ms
+    assert set(s) == STAT_KEYS and s["n"] == 10 and s["source"] == "isolated"
+    assert s["median_ms"] == pytest.approx(5.5) and s["mean_ms"] == pytest.approx(5.5)
+    assert s["p90_ms"] == pytest.approx(9.1) and s["max_ms"] == pytest.approx(10.0)
+    assert s["within_budget"] is False  # the median 5.5 ms is over 5 ms
+    assert stage_stats([0.004], budget_ms=5.0)["within_budget"] is True
+    empty = stage_stats([], budget_ms=5.0, source="system")
+    assert empty["n"] == 0 and empty["median_ms"] is None and empty["within_budget"] is None
+
+
+def test_parse_stages():
+    assert parse_stages("all") == parse_stages("features,matching,depth,registration,backend,loop,system")
+    assert parse_stages(" depth , features") == {"depth", "features"}
+    with pytest.raises(ConfigError, match="unknown stage.*pnp"):
+        parse_stages("features,pnp")
+
+
+def _spy_atomic(monkeypatch) -> list:
+    calls = []
+    real = cmd_bench.write_text_atomic
+
+    def spy(path, text):
+        calls.append(path)
+        real(path, text)
+
+    monkeypatch.setattr(cmd_bench, "write_text_atomic", spy)
+    return calls
+
+
+def test_isolated_stages_on_real_frames(kitti_root, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "res" / "bench.json"
+    calls = _spy_atomic(monkeypatch)
+    assert main(["bench", "--root", str(kitti_root), "--seq", "04", "--frames", "0:4", "--out", str(out),
+                 "--stages", "features,matching,depth,registration"]) == 0
+    assert calls == [out]
+    assert [p.name for p in out.parent.iterdir()] == ["bench.json"]  # no temporary file left beside it
+    r = json.loads(out.read_text())
+    assert {"schema", "created_utc", "command_line", "git_revision", "versions", "machine", "input", "stages",
+            "memory", "config", "duration_s"} <= set(r)
+    assert r["input"]["n_frames"] == 4 and r["input"]["image_size"] == [1226, 370]
+    assert r["input"]["scan_points_median"] > 100_000 and r["input"]["registration"]["init"] == "ground truth"
+    expect_n = {"features": 4, "features_1241x376": 4, "features_orb": 4, "features_lsd": 4, "features_repair": 4,
+                "features_lbd": 4, "matching": 3, "depth": 2, "registration": 1}  # depth at frames 0, 3
+    assert set(r["stages"]) == set(expect_n)
+    for name, n in expect_n.items():
+        s = r["stages"][name]
+        assert set(s) == STAT_KEYS and s["n"] == n and s["source"] == "isolated", name
+        assert 0 < s["median_ms"] <= s["p90_ms"] <= s["max_ms"], name
+        assert s["budget_ms"] == BUDGET_MS.get(name), name
+        assert isinstance(s["within_budget"], bool) == (name in BUDGET_MS), name
+    assert "system" not in r  # no whole run was asked for
+    assert r["memory"]["ru_maxrss_mb"] > 100 and r["memory"]["isolated_stages"]["peak_mb"] > 100
+    m = r["machine"]
+    assert m["cpu_count"] >= 1 and len(m["load_avg_start"]) == 3 and len(m["load_avg_end"]) == 3
+    assert "OPENBLAS_NUM_THREADS" in m["threads"] and r["versions"]["numpy"] and r["versions"]["gtsam"]
+    assert "features" in capsys.readouterr().out  # the human table
+
+
+def test_whole_system_with_and_without_recording(synth_seq, tmp_path):
+    out = tmp_path / "sys.json"
+    assert main(["bench", "--synth", str(synth_seq), "--frames", "0:6", "--out", str(out),
+                 "--stages", "system"]) == 0
+    r = json.loads(out.read_text())
+    assert r["input"]["dataset"] == "kitti_odometry" and r["input"]["n_frames"] == 6
+    sysr = r["system"]
+    assert sysr["backend_concurrent"] is True
+    off, on = sysr["recording_off"]["runs"][0], sysr["recording_on"]["runs"][0]
+    for run in (off, on):
+        assert run["frames"] == 6 and run["n_keyframes"] >= 2 and run["cpu_s"] > 0
+        assert run["fps"] == pytest.approx(6 / run["wall_s"], rel=1e-2)
+    assert sysr["recording_off"]["fps"] == off["fps"] and sysr["recording_off"]["fps_budget"] == 10.0
+    assert on["rrd_bytes"] > 10_000 and sysr["recording_on"]["rrd_bytes_per_frame"] == round(on["rrd_bytes"] / 6)
+    assert on["recording_ms_per_frame"] > off["recording_ms_per_frame"]  # Rerun encodes; the null recorder not
+    assert on["recording_pct_of_step"] > off["recording_pct_of_step"] >= 0
+    assert sysr["recording_overhead_pct"] == pytest.approx(100 * (off["fps"] / on["fps"] - 1), abs=0.5)
+    assert isinstance(sysr["recording_overhead_within_budget"], bool)
+    for name in ("pnpl", "matching_pnpl", "bundle_adjustment", "scale_correction_ba", "backend", "loop"):
+        s = r["stages"][name]
+        assert s["source"] == "system" and s["n"] >= 1 and s["median_ms"] > 0, name
+    assert r["stages"]["matching_pnpl"]["n"] == 5 and r["stages"]["matching_pnpl"]["budget_ms"] == 15.0
+    assert "features" not in r["stages"]  # isolated stages were not asked for
+    assert {"tracking", "total", "features"} <= set(sysr["stages_recording_off"])
+    assert r["memory"]["system_recording_on"]["peak_mb"] > 100
+
+
+def test_missing_root_is_one_line_error(tmp_path, capsys):
+    out = tmp_path / "never.json"
+    assert main(["bench", "--root", str(tmp_path / "nowhere"), "--stages", "features", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "nowhere" in err and "\n" not in err
+    assert not out.exists()
+
+
+def test_bad_stage_name_is_one_line_error(tmp_path, capsys):
+    assert main(["bench", "--root", str(tmp_path), "--stages", "features,warp"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "warp" in err and "\n" not in err
