@@ -184,3 +184,51 @@ def test_points_only_extraction_has_no_lines():
     np.testing.assert_array_equal(seq.segments, par.segments)
     np.testing.assert_array_equal(seq.line_descriptors, par.line_descriptors)
     np.testing.assert_array_equal(seq.descriptors, par.descriptors)
+
+
+def test_window_pairs_match_brute_force():
+    from plvo.features.matching import window_pairs
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform([0, 0], [W, H], (400, 2))
+    centres = np.vstack([rng.uniform([-80, -80], [W + 80, H + 80], (300, 2)), [[np.nan, 5.0]], pts[:5]])
+    i, j = window_pairs(centres, pts, 60.0)
+    d2 = ((centres[:, None] - pts[None]) ** 2).sum(2)
+    want = set(zip(*np.nonzero(d2 <= 60.0**2)))
+    assert set(zip(i.tolist(), j.tolist())) == want and len(i) == len(want)
+    assert np.all(np.diff(i) >= 0)  # grouped by centre
+
+
+def test_windowed_selection_equals_masked_dense_selection():
+    """The sparse path (pairs in the window, NaN rows against all) picks what argmin over the masked dense
+    matrix picks, ties included: descriptors drawn from a small pool make many equal distances."""
+    from plvo.features.matching import _BIG, _best_mutual
+
+    rng = np.random.default_rng(5)
+    pool = rng.integers(0, 256, (12, 32), dtype=np.uint8)
+    for trial in range(20):
+        n, m = rng.integers(20, 80, 2)
+        a = feature_set(kp=rng.uniform([0, 0], [300, 200], (n, 2)), desc=pool[rng.integers(0, 12, n)])
+        b = feature_set(kp=rng.uniform([0, 0], [300, 200], (m, 2)), desc=pool[rng.integers(0, 12, m)])
+        pred = a.keypoints + rng.normal(0, 20, (n, 2))
+        pred[rng.random(n) < 0.2] = np.nan
+        cfg = dataclasses.replace(MatchingConfig(), point_window_px=50.0, point_max_hamming=256)
+        got = match_points(a, b, cfg, pred)
+        dist = hamming_matrix(a.descriptors, b.descriptors)
+        far = ((pred[:, None] - b.keypoints[None]) ** 2).sum(2) > 50.0**2
+        dist[np.all(np.isfinite(pred), 1)[:, None] & far] = _BIG
+        want = _best_mutual(dist, cfg.point_max_hamming, cfg.point_ratio, cfg.point_mutual)
+        assert got.pairs.tolist() == want.pairs.tolist(), trial
+        np.testing.assert_array_equal(got.distance, want.distance)
+
+
+def test_line_bound_per_predicted_row():
+    ld = np.random.default_rng(6).integers(0, 256, (2, 32), dtype=np.uint8)
+    prev = feature_set(seg=[[100, 100, 300, 100], [100, 250, 300, 250]], ldesc=ld)
+    cur = feature_set(seg=[[100, 108, 300, 108], [100, 258, 300, 258]], ldesc=ld)  # both 8 px below
+    pred = prev.segments.copy()
+    cfg = MatchingConfig()
+    assert len(match_lines(prev, cur, cfg, pred)) == 0  # the paper's 5 px
+    m = match_lines(prev, cur, cfg, pred, predicted_bound_px=np.array([10.0, 5.0]))
+    assert m.pairs.tolist() == [[0, 0]]
+    assert len(match_lines(prev, cur, cfg, pred, predicted_bound_px=10.0)) == 2

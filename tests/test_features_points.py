@@ -80,3 +80,30 @@ def test_kitti_frame_spread(kitti_root):
 def test_bad_image_raises():
     with pytest.raises(PlvoError, match="ORB"):
         detect_orb(np.zeros((50, 50), np.float32), OrbConfig())
+
+
+def test_weak_cells_get_the_corners_of_a_full_low_threshold_pass():
+    """The low-threshold FAST runs only on the packed crops of weak cells; it must find what one pass over the
+    whole level finds there (the per-cell rule applied to a single FAST pass at the low threshold)."""
+    from plvo.features.points import _fast_corners, _inside, build_pyramid
+
+    cfg = OrbConfig()
+    total = same = 0
+    for img in build_pyramid(textured_image(2), cfg)[:4]:
+        h, w = img.shape
+        b = cfg.edge_threshold - 3
+        kps = cv2.FastFeatureDetector_create(cfg.fast_threshold_min, True).detect(img[b : h - b, b : w - b])
+        xy = cv2.KeyPoint_convert(kps).astype(float) + b
+        resp = np.array([k.response for k in kps])
+        cells = (xy[:, 1] // cfg.grid_cell_px).astype(int) * 1000 + (xy[:, 0] // cfg.grid_cell_px).astype(int)
+        strong_cell = np.isin(cells, cells[resp >= cfg.fast_threshold])
+        keep = (resp >= cfg.fast_threshold) | ~strong_cell
+        xy, resp = _inside(xy[keep], resp[keep], w, h, cfg.edge_threshold)
+        want = set(map(tuple, np.c_[xy, resp].tolist()))
+        got_xy, got_resp = _fast_corners(img, cfg)
+        got = set(map(tuple, np.c_[got_xy, got_resp].tolist()))
+        total += len(want)
+        same += len(want & got)
+        assert len(got) == len(got_xy)
+        assert len(got - want) <= 0.002 * len(want)
+    assert same >= 0.998 * total, (same, total)

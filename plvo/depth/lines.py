@@ -20,7 +20,6 @@ import numpy as np
 
 from plvo.config import DepthConfig
 from plvo.depth.projection import ProjectedScan, query_segments, to_padded
-from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch, orth_plucker_jacobian
 from plvo.geometry.lines import line_projection_matrix, orth_to_plucker, orth_update, plucker_to_orth
 from plvo.types import (
     DEPTH_BAD_FIT,
@@ -203,42 +202,6 @@ def _distances(pts: np.ndarray, L: np.ndarray) -> np.ndarray:
     return np.sqrt((ex * ex + ey * ey + ez * ez) / np.sum(d * d, axis=1)[:, None])
 
 
-def _ex_cross(v: np.ndarray) -> np.ndarray:
-    """(...,3,K) columns v -> (...,3,3,K): [e_x x v, e_y x v, e_z x v] stacked on axis -3."""
-    vx, vy, vz = v[..., 0, :], v[..., 1, :], v[..., 2, :]
-    z = np.zeros_like(vx)
-    return np.stack(
-        [np.stack([z, -vz, vy], -2), np.stack([vz, z, -vx], -2), np.stack([-vy, vx, z], -2)], axis=-3
-    )
-
-
-def _point_normal_equations(p: np.ndarray, w: np.ndarray, U: np.ndarray, W: np.ndarray):
-    """Sums over points of w J^T J (M,4,4), w J^T r (M,4) and w |r|^2 (M,), r = (p x d - m)/|d|, from moments.
-
-    r and its Jacobian are affine in p: r = R0 + sum_j p_j R_j, J = G0 + sum_j p_j G_j. So every sum over the
-    points is a contraction of the 4x4 weighted moment matrix S of (1, p) with these small matrices, and the
-    per-point work is one batched (4,P)@(P,4) product. p: (M,P,3) zeros on padding, w: (M,P) zero on padding.
-    """
-    L = orth_to_plucker(U, W)
-    m, d = L[:, :3], L[:, 3:]
-    dL = orth_plucker_jacobian(U, W)
-    dm, dd = dL[:, :3], dL[:, 3:]  # (M,3,4)
-    nd = np.sqrt(np.sum(d * d, axis=1))
-    s = np.einsum("mi,mik->mk", d, dd) / (nd * nd)[:, None]  # (d|d|/d delta) / |d|
-    R0 = -m / nd[:, None]
-    Rj = _ex_cross(d[:, :, None])[..., 0] / nd[:, None, None]  # (M,3 j,3 i): e_j x d / |d|
-    R = np.concatenate([R0[:, None, :], Rj], axis=1)  # (M,4,3)
-    G0 = -dm / nd[:, None, None] - R0[:, :, None] * s[:, None, :]
-    Gj = _ex_cross(dd) / nd[:, None, None, None] - Rj[..., None] * s[:, None, None, :]  # (M,3,3,4)
-    G = np.concatenate([G0[:, None], Gj], axis=1)  # (M,4,3,4)
-    ph = np.concatenate([np.ones(p.shape[:2] + (1,)), p], axis=2)  # (M,P,4)
-    S = np.einsum("mpa,mpb->mab", ph * w[..., None], ph)
-    H = np.einsum("mab,maik,mbil->mkl", S, G, G)
-    g = np.einsum("mab,maik,mbi->mk", S, G, R)
-    c = np.einsum("mab,mai,mbi->m", S, R, R)
-    return H, g, c
-
-
 def _ends_h(seg: np.ndarray) -> np.ndarray:
     """(M,4) segments -> (M,2,3) homogeneous end pixels."""
     return np.concatenate([seg.reshape(-1, 2, 2), np.ones((len(seg), 2, 1))], axis=2)
@@ -256,14 +219,85 @@ def _to_camera(L_loc: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.concatenate([L_loc[:, :3] + _cross(c, L_loc[:, 3:]), L_loc[:, 3:]], axis=1)
 
 
-def _huber_weights(dist: np.ndarray, sel: np.ndarray, delta: float) -> np.ndarray:
-    w = np.where(dist <= delta, 1.0, delta / np.maximum(dist, 1e-12))
-    return np.where(sel, w, 0.0)
+def _hat_rows(v: np.ndarray, out: np.ndarray, sign: float = 1.0) -> None:
+    """Write sign * hat(v) of (M,3) vectors into the (M,3,3) view out: out[:, j, i] = sign * (e_j x v)_i."""
+    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+    out[:, 0, 0] = out[:, 1, 1] = out[:, 2, 2] = 0.0
+    out[:, 0, 1], out[:, 0, 2] = -sign * vz, sign * vy
+    out[:, 1, 0], out[:, 1, 2] = sign * vz, -sign * vx
+    out[:, 2, 0], out[:, 2, 1] = -sign * vy, sign * vx
 
 
-def _huber_cost(dist, sel, delta: float):
-    rho = np.where(dist <= delta, 0.5 * dist**2, delta * (dist - 0.5 * delta))
-    return np.sum(np.where(sel, rho, 0.0), 1)
+class _Lines:
+    """Orthonormal lines (U (M,3,3), W (M,2,2)) in frames centred on their points, and what each step needs.
+
+    With u1, u2, u3 the columns of U and a = w1 / w2 (the line's distance to the centroid), a point p has the
+    residual r(p) = (p x d - m) / |d| = p x u2 - a u1, and its Jacobian for orth_update's delta is affine in p:
+    J(p) = G0 + sum_j p_j G_j with G0 = [0, a u3, -a u2, (1 + a^2) u1] and G_j = [e_j x u3, 0, -e_j x u1, 0].
+    """
+
+    def __init__(self, U: np.ndarray, W: np.ndarray) -> None:
+        self.U, self.W = U, W
+        self.u1, self.u2, self.u3 = U[:, :, 0], U[:, :, 1], U[:, :, 2]
+        self.a = W[:, 0, 0] / W[:, 1, 0]
+
+    def distances(self, X: np.ndarray, Y: np.ndarray, Z: np.ndarray) -> np.ndarray:
+        """(M,P) distances |p x u2 - a u1| of the points with coordinates X, Y, Z (M,P)."""
+        u2, au1 = self.u2, self.a[:, None] * self.u1
+        ex = Y * u2[:, 2, None] - Z * u2[:, 1, None] - au1[:, 0, None]
+        ey = Z * u2[:, 0, None] - X * u2[:, 2, None] - au1[:, 1, None]
+        ez = X * u2[:, 1, None] - Y * u2[:, 0, None] - au1[:, 2, None]
+        return np.sqrt(ex * ex + ey * ey + ez * ez)
+
+    def point_normal_equations(self, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(M,4,4) weighted moments of (1, p) -> sum w J^T J (M,4,4) and sum w J^T r (M,4), by contraction."""
+        M = len(self.a)
+        a = self.a[:, None]
+        G = np.zeros((M, 4, 3, 4))
+        G[:, 0, :, 1] = a * self.u3
+        G[:, 0, :, 2] = -a * self.u2
+        G[:, 0, :, 3] = (1.0 + a * a) * self.u1
+        _hat_rows(self.u3, G[:, 1:, :, 0])
+        _hat_rows(self.u1, G[:, 1:, :, 2], -1.0)
+        R = np.empty((M, 4, 3))
+        R[:, 0] = -a * self.u1
+        _hat_rows(self.u2, R[:, 1:])
+        G12 = G.reshape(M, 12, 4)
+        SG = (S @ G.reshape(M, 4, 12)).reshape(M, 12, 4)
+        H = np.swapaxes(G12, 1, 2) @ SG
+        g = (np.swapaxes(G12, 1, 2) @ (S @ R).reshape(M, 12, 1))[..., 0]
+        return H, g
+
+    def reprojection(self, KL: np.ndarray, ends_h: np.ndarray, hat_c: np.ndarray, jacobian: bool = False):
+        """(M,2) px residuals of the segment ends (M,2,3) against the projected lines, and their (M,2,4)
+        Jacobian for delta when asked; hat_c (M,3,3): cross-product matrices of the frames' centres c."""
+        w1, w2 = self.W[:, 0, 0, None], self.W[:, 1, 0, None]
+        cU = hat_c @ self.U  # columns c x u1, c x u2, c x u3
+        l = (w1 * self.u1 + w2 * cU[:, :, 1]) @ KL.T  # K_L (m + c x d)
+        norm = np.hypot(l[:, 0], l[:, 1])
+        r = (ends_h @ l[:, :, None])[..., 0] / norm[:, None]
+        if not jacobian:
+            return r, None
+        grad_n = np.zeros_like(l)
+        grad_n[:, :2] = l[:, :2] / norm[:, None]
+        dr_dm = ((ends_h - r[:, :, None] * grad_n[:, None, :]) / norm[:, None, None]) @ KL  # (M,2,3)
+        # d(m + c x d)/d delta: dm = [0, -w1 u3, w1 u2, -w2 u1], dd = [w2 u3, 0, -w2 u1, w1 u2]
+        dmc = np.empty((len(l), 3, 4))
+        dmc[:, :, 0] = w2 * cU[:, :, 2]
+        dmc[:, :, 1] = -w1 * self.u3
+        dmc[:, :, 2] = w1 * self.u2 - w2 * cU[:, :, 0]
+        dmc[:, :, 3] = w1 * cU[:, :, 1] - w2 * self.u1
+        return r, dr_dm @ dmc
+
+
+def _huber(dist: np.ndarray, wsel: np.ndarray, delta: float, weights: bool = True):
+    """(M,P) distances, (M,P) 0/1 selection -> Huber IRLS weights (M,P) (None unless asked) and costs (M,)."""
+    inside = dist <= delta
+    rho = np.where(inside, 0.5 * dist * dist, delta * (dist - 0.5 * delta))
+    cost = np.einsum("mp,mp->m", rho, wsel)
+    if not weights:
+        return None, cost
+    return np.where(inside, wsel, wsel * delta / np.maximum(dist, 1e-12)), cost
 
 
 def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np.ndarray, cfg: DepthConfig):
@@ -271,57 +305,72 @@ def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np
 
     Each line is solved in a frame translated to the centroid of its points: the orthonormal parameters of a line
     20 m from the origin are badly conditioned (w2 ~ 0.05, one radian of U moves it by metres) and Gauss-Newton
-    steps overshoot; near the origin the same problem converges in a few steps.
+    steps overshoot; near the origin the same problem converges in a few steps. The points' part of the normal
+    equations is a contraction of their weighted moments (one batched (4,P)@(P,4) product a step); a step's
+    trial distances and residuals are kept for the next step when it is accepted.
     """
-    M = len(L0)
-    n_sel = np.maximum(sel.sum(1), 1)
-    c = np.where(sel[..., None], np.nan_to_num(pts), 0.0).sum(1) / n_sel[:, None]
-    c = np.where((sel.sum(1) > 0)[:, None], c, 0.0)
-    p = np.where(sel[..., None], np.nan_to_num(pts) - c[:, None, :], 0.0)
+    M, P = sel.shape
+    wsel = sel.astype(float)
+    n_sel = np.maximum(wsel.sum(1), 1.0)
+    q = np.where(sel[..., None], np.nan_to_num(pts), 0.0)
+    c = q.sum(1) / n_sel[:, None]
+    # (M,4,P) rows 1, x, y, z in the centred frames, zero on points not selected
+    ph = np.empty((M, 4, P))
+    ph[:, 0] = wsel
+    for k in range(3):
+        ph[:, k + 1] = np.where(sel, q[:, :, k] - c[:, k, None], 0.0)
     U, W = plucker_to_orth(_to_camera(L0, -c))
-    T = np.broadcast_to(np.eye(4), (M, 4, 4)).copy()
-    T[:, :3, 3] = c
     KL = line_projection_matrix(K)
     ends_h = _ends_h(seg)
     lam = np.full(M, 1e-3)
-    active = np.ones(M, dtype=bool)
     iters = np.zeros(M, dtype=np.int64)
     converged = np.zeros(M, dtype=bool)
     last_rel = np.full(M, np.inf)
-    wr, hub = float(cfg.line_reprojection_weight), float(cfg.line_huber_m)
+    wr2, hub = float(cfg.line_reprojection_weight) ** 2, float(cfg.line_huber_m)
     eye = np.eye(4)
+    a = np.arange(M)  # the active lines
+    cur = _Lines(U, W)
+    dist = cur.distances(ph[:, 1], ph[:, 2], ph[:, 3])
+    hat_c = np.zeros((M, 3, 3))
+    _hat_rows(c, hat_c)  # hat(c) v = c x v
+    rl = cur.reprojection(KL, ends_h, hat_c)[0]
     for _ in range(int(cfg.line_lm_iterations)):
-        if not active.any():
+        if len(a) == 0:
             break
-        a = np.flatnonzero(active)
-        Ua, Wa, Pa, Sa = U[a], W[a], p[a], sel[a]
-        dist = _distances(Pa, orth_to_plucker(Ua, Wa))
-        Hp, gp, _ = _point_normal_equations(Pa, _huber_weights(dist, Sa, hub), Ua, Wa)
-        rl, _, Jl = line_residuals_and_jacobians_batch(K, T[a], Ua, Wa, seg[a])
-        H = Hp + wr**2 * np.einsum("mik,mil->mkl", Jl, Jl)
-        g = gp + wr**2 * np.einsum("mik,mi->mk", Jl, rl)
-        cost = _huber_cost(dist, Sa, hub) + 0.5 * wr**2 * np.sum(rl**2, 1)
+        la = _Lines(U[a], W[a])
+        pa, wa = ph[a], wsel[a]
+        w, hcost = _huber(dist, wa, hub)
+        S = (pa * w[:, None, :]) @ np.swapaxes(pa, 1, 2)
+        Hp, gp = la.point_normal_equations(S)
+        rl, Jl = la.reprojection(KL, ends_h[a], hat_c[a], jacobian=True)
+        JlT = np.swapaxes(Jl, 1, 2)
+        H = Hp + wr2 * (JlT @ Jl)
+        g = gp + wr2 * (JlT @ rl[..., None])[..., 0]
+        cost = hcost + 0.5 * wr2 * np.einsum("mk,mk->m", rl, rl)
         A = H + lam[a, None, None] * (H * eye + 1e-9 * eye)
         delta = -np.linalg.solve(A, g[..., None])[..., 0]
-        U2, W2 = orth_update(Ua, Wa, delta)
-        L2 = orth_to_plucker(U2, W2)
-        dist2 = _distances(Pa, L2)
-        rl2 = _reprojection(KL, ends_h[a], _to_camera(L2, c[a]))
-        cost2 = _huber_cost(dist2, Sa, hub) + 0.5 * wr**2 * np.sum(rl2**2, 1)
+        U2, W2 = orth_update(la.U, la.W, delta)
+        trial = _Lines(U2, W2)
+        dist2 = trial.distances(pa[:, 1], pa[:, 2], pa[:, 3])
+        rl2 = trial.reprojection(KL, ends_h[a], hat_c[a])[0]
+        cost2 = _huber(dist2, wa, hub, weights=False)[1] + 0.5 * wr2 * np.einsum("mk,mk->m", rl2, rl2)
         better = np.isfinite(cost2) & (cost2 <= cost)
         U[a[better]], W[a[better]] = U2[better], W2[better]
+        dist = np.where(better[:, None], dist2, dist)
         lam[a] = np.where(better, lam[a] * 0.1, lam[a] * 10.0)
         iters[a] += 1
-        step = np.linalg.norm(delta, axis=1)
+        step = np.sqrt(np.einsum("mk,mk->m", delta, delta))
         rel = np.where(better, (cost - cost2) / np.maximum(cost, 1e-300), 0.0)
         last_rel[a[better]] = rel[better]
         # Settled: the step, the relative gain, or the absolute gain (1e-6 m^2, far below lidar noise) is tiny.
         small = (step < 1e-7) | (better & ((rel <= 1e-4) | (step < 1e-5) | (cost - cost2 <= 1e-6)))
         done = small | (lam[a] > 1e6)
         converged[a[small]] = True
-        active[a[done]] = False
+        a, dist = a[~done], dist[~done]
     # Robust (Huber) fits of points spread over a surface creep on slowly; a line whose last accepted step
     # gained under 1% is settled for a depth prior.
+    active = np.zeros(M, dtype=bool)
+    active[a] = True
     converged |= active & (last_rel < 1e-2)
     return _to_camera(orth_to_plucker(U, W), c), iters, converged
 

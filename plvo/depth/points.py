@@ -12,7 +12,7 @@ import numpy as np
 
 from plvo.config import DepthConfig
 from plvo.depth.projection import ProjectedScan, query_patches, to_padded
-from plvo.depth.segmentation import depth_clusters, fit_planes, foreground_mask, grow_foreground
+from plvo.depth.segmentation import depth_clusters, fit_planes_xyz, foreground_mask, grow_foreground_xyz
 from plvo.types import (
     DEPTH_BAD_FIT,
     DEPTH_GRAZING_RAY,
@@ -46,18 +46,17 @@ def point_depths(proj: ProjectedScan, keypoints: np.ndarray, K: np.ndarray, cfg:
     pidx, count = to_padded(owner, idx, N)
     if len(proj) == 0 or N == 0:
         return _no_depth(N, pidx.shape[1])
-    valid = pidx >= 0
-    pts = np.where(valid[:, :, None], proj.pts_cam[np.maximum(pidx, 0)], 0.0)  # zeros on padding
-    depth = np.where(valid, proj.depth[np.maximum(pidx, 0)], np.nan)
+    X, Y, Z, U, V = proj.gather_columns(pidx)  # (N,P) each, zeros on padding
+    depth = np.where(pidx >= 0, Z, np.nan)
     rays = np.stack([(kp[:, 0] - K[0, 2]) / K[0, 0], (kp[:, 1] - K[1, 2]) / K[1, 1], np.ones(N)], axis=1)
     unit = rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     labels = depth_clusters(depth, cfg.depth_jump_ratio, cfg.depth_jump_min_m)
     # Bridging tolerates slanter planes than a prior does, so that a slanted road is reported as grazing rather
     # than as a bad fit; a thin occluder joined with the wall behind it gives a far slanter plane still.
-    k_sel = grow_foreground(pts, labels, unit, cfg.plane_max_rms_m, 0.5 * cfg.min_ray_plane_cos)
+    k_sel = grow_foreground_xyz(X, Y, Z, labels, unit, cfg.plane_max_rms_m, 0.5 * cfg.min_ray_plane_cos)
     fg = foreground_mask(labels, k_sel)
-    n, d, inl, rms, eig, c = _robust_plane(pts, fg, kp, proj, pidx, cfg)
+    n, d, inl, rms, eig, c = _robust_plane(X, Y, Z, U - kp[:, 0, None], V - kp[:, 1, None], fg, cfg)
     # A strip of points barely wider than the range noise (a thin pole, a patch on an object's edge) leaves the
     # plane's tilt across the strip to the noise: take the plane facing the camera through the centroid.
     with np.errstate(invalid="ignore"):
@@ -74,7 +73,7 @@ def point_depths(proj: ProjectedScan, keypoints: np.ndarray, K: np.ndarray, cfg:
         zmin = np.min(np.where(inl, depth, np.inf), axis=1)
         zmax = np.max(np.where(inl, depth, -np.inf), axis=1)
         tol = np.maximum(cfg.depth_jump_min_m, cfg.depth_jump_ratio * zmax)
-    n_fg, n_inl = fg.sum(1), inl.sum(1)
+    n_fg, n_inl = np.count_nonzero(fg, axis=1), np.count_nonzero(inl, axis=1)
 
     reason = np.full(N, DEPTH_OK, dtype=np.int64)
     out_of_range = ~((z > 0) & (z <= cfg.max_depth_m) & (z >= zmin - tol) & (z <= zmax + tol))
@@ -98,25 +97,25 @@ def point_depths(proj: ProjectedScan, keypoints: np.ndarray, K: np.ndarray, cfg:
     )
 
 
-def _robust_plane(pts, fg, kp, proj, pidx, cfg: DepthConfig):
+def _robust_plane(X, Y, Z, du, dv, fg, cfg: DepthConfig):
     """Reweighted fits on the foreground: inliers within plane_inlier_m, weighted towards the feature pixel.
 
+    X, Y, Z: (Q,P) camera coordinates; du, dv: (Q,P) pixel offsets from the feature; fg: (Q,P) foreground.
     -> normals (Q,3), offsets (Q,), inlier mask (Q,P), inlier RMS distance (Q,), eigenvalues (Q,3) and
     centroids (Q,3) of the last fit.
     """
-    uv = proj.uv[np.maximum(pidx, 0)]
-    r2 = np.sum((uv - kp[:, None, :]) ** 2, axis=2)
     sigma = max(float(cfg.point_patch_px), 1.0)
     # Points near the feature pixel count more, so at a concave fold the face under the feature wins.
-    prox = np.exp(-0.5 * r2 / sigma**2)
+    prox = np.exp((du * du + dv * dv) * (-0.5 / sigma**2))
     w = np.where(fg, prox, 0.0)
     for _ in range(2):
-        n, d, eig, c = fit_planes(pts, w)
-        dist = np.abs(np.einsum("qpi,qi->qp", pts, n) + d[:, None])
+        n, d, eig, c = fit_planes_xyz(X, Y, Z, w)
+        dist = np.abs(X * n[:, 0, None] + Y * n[:, 1, None] + Z * n[:, 2, None] + d[:, None])
         inl = fg & (dist <= cfg.plane_inlier_m)
         w = np.where(inl, prox, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt(np.sum(np.where(inl, dist**2, 0.0), 1) / inl.sum(1))
+        rms = np.sqrt(np.einsum("qp,qp->q", np.where(inl, dist, 0.0), np.where(inl, dist, 0.0))
+                      / np.count_nonzero(inl, axis=1))
     return n, d, inl, rms, eig, c
 
 
