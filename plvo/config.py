@@ -105,13 +105,18 @@ class TrackingConfig:
     outlier_reproj_px: float = 3.0
     search_radius_px: float = 8.0  # landmarks of recent keyframes re-found this close to their projection
     search_keyframes: int = 2  # how many recent keyframes' landmarks are searched for (0: previous frame only)
+    # Added by issue 7: line landmarks re-found by projection (plvo/tracking/search.py), beside the 2D-2D matches.
+    search_lines: bool = True
+    line_search_px: float = 4.0  # both endpoints of a segment this close to the projected landmark line
+    line_search_angle_deg: float = 3.0
+    line_search_overlap: float = 0.3  # shared extent along the line, as a share of the shorter segment
 
 
 @dataclass(frozen=True)
 class RegistrationConfig:
     method: str = "ndt"  # "ndt", or "icp" / "gicp" directly
     fallback: str = "icp"  # used when NDT fails; "none" to disable
-    voxel_m: float = 0.5
+    voxel_m: float = 0.6  # issue 8: 0.5 -> 0.6 (same accuracy on seq 04, 2/3 of the points)
     ndt_resolution_m: float = 1.0
     max_iterations: int = 30
     max_range_m: float = 60.0
@@ -134,6 +139,8 @@ class BackendConfig:
     # The paper sets the relative-pose information to zeta I; zeta is dimensionless, so a base standard deviation
     # (metres / radians) scales it against the reprojection factors: information = zeta / sigma^2.
     sigma_relative_pose: float = 0.05
+    sigma_relative_rotation_deg: float = 2.8648  # the rotation part of the same (information zeta / sigma_rad^2)
+    stereo_baseline_m: float = 0.54  # virtual baseline of depth-prior point factors: their weight grows with b^2
     huber_point: float = 2.0
     huber_line: float = 2.0
     iterations: int = 10

@@ -9,6 +9,10 @@ Landmark creation, in keyframes only:
   all. The first frame and every re-initialisation still take lidar depth, or the run would have no scale.
 - `points_only`: no line is matched, created or used.
 
+Beyond the paper, landmarks of the recent keyframes that the 2D-2D matching missed are re-found by projection
+after the solve (points near their projection, lines lying on their projected line: plvo.tracking.search), and
+the pose is refined on all of them.
+
 Tracking loss (PnPL fails or keeps fewer than cfg.tracking.min_pnp_inliers matches) takes the constant-velocity
 prediction as the pose, forgets the tracked landmarks, makes a keyframe and re-initialises its landmarks from the
 current lidar depth; the log and the result's message say so.
@@ -27,11 +31,12 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.geometry import se3
-from plvo.geometry.camera import backproject, in_image, pixel_rays, project
+from plvo.geometry.camera import backproject, in_image, project
 from plvo.tracking import keyframes as kfp
-from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, closest_points_on_lines, triangulate_tracks
+from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
 from plvo.tracking.map import FrameAssociation, LandmarkMap, search_by_projection
 from plvo.tracking.pnpl import refine_pose, solve_pnpl
+from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
 from plvo.results import TrackingResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 
@@ -183,62 +188,37 @@ class Frontend:
             timings["keyframe"] = time.perf_counter() - t
         self._prev = state
         n_found = len(corr["p_lm"]) - len(sol.point_inliers)
+        n_found_l = len(corr["l_lm"]) - len(sol.line_inliers)
         msg = (f"frame {frame.index}: {int(p_in.sum())}/{len(p_in)} point ({n_found} re-found by projection) and "
-               f"{int(l_in.sum())}/{len(l_in)} line inliers" + (f"; keyframe ({decision.reason})" if keyframe else ""))
+               f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers" + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
         return self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
                             corr, (p_in, l_in), n_new, keyframe, timings)
 
     # ---- matching and correspondences --------------------------------------------------------------------
-    def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray) -> tuple[Matches, Matches]:
-        pred_uv = self._predict_points(prev, T_pred)
-        pm = self._match_points(prev.features, feats, self.cfg.matching, predicted_uv=pred_uv)
-        if not self.uses_lines or prev.features.n_lines == 0 or feats.n_lines == 0:
-            return pm, Matches(np.zeros((0, 2), np.int64), np.zeros(0))
-        pred_seg = self._predict_segments(prev, T_pred)
-        lm = self._match_lines(prev.features, feats, self.cfg.matching, predicted_segments=pred_seg)
+    def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray | None) -> tuple[Matches, Matches]:
+        """2D-2D matches prev -> feats (indices into the full feature sets), predicted by T_pred (None: without).
+
+        Only the previous features tracked to a landmark are matched when landmarks come from depth priors: the
+        others cannot give a 3D-2D match, and leaving them out makes point matching several times cheaper. (The
+        triangulation ablation chains every keypoint from keyframe to keyframe, so it matches all.)"""
+        pf = prev.features
+        p_rows = (np.flatnonzero(prev.assoc.point_landmark >= 0) if self.cfg.tracking.use_depth_priors
+                  else np.arange(pf.n_points))
+        sub = dataclasses.replace(pf, keypoints=pf.keypoints[p_rows], descriptors=pf.descriptors[p_rows],
+                                  kp_octave=pf.kp_octave[p_rows], kp_angle=pf.kp_angle[p_rows],
+                                  kp_response=pf.kp_response[p_rows])
+        pred_uv = None if T_pred is None else predict_points(self.K, self.map, prev.T_world_cam, pf.keypoints[p_rows],
+                                                             prev.assoc.point_landmark[p_rows], T_pred)
+        pm = _remap(self._match_points(sub, feats, self.cfg.matching, predicted_uv=pred_uv), p_rows)
+        l_rows = np.flatnonzero(prev.assoc.line_landmark >= 0)
+        if not self.uses_lines or len(l_rows) == 0 or feats.n_lines == 0:
+            return pm, _no_matches()
+        sub = dataclasses.replace(pf, segments=pf.segments[l_rows], line_descriptors=pf.line_descriptors[l_rows])
+        pred_seg = None if T_pred is None else predict_segments(self.K, self.map, prev.T_world_cam, pf.segments[l_rows],
+                                                                 prev.assoc.line_landmark[l_rows], T_pred)
+        lm = _remap(self._match_lines(sub, feats, self.cfg.matching, predicted_segments=pred_seg), l_rows)
         return pm, lm
-
-    def _rotation_homography(self, T_world_prev: np.ndarray, T_world_cur: np.ndarray) -> np.ndarray:
-        R = (se3.inv(T_world_cur) @ T_world_prev)[:3, :3]
-        return self.K @ R @ np.linalg.inv(self.K)
-
-    def _predict_points(self, prev: _FrameState, T_pred: np.ndarray) -> np.ndarray:
-        """(N_prev,2) predicted pixels of the previous keypoints: landmarks projected with the predicted pose,
-        the rest moved by the predicted rotation alone (points at infinity)."""
-        uv = prev.features.keypoints.astype(float)
-        H = self._rotation_homography(prev.T_world_cam, T_pred)
-        hom = np.c_[uv, np.ones(len(uv))] @ H.T
-        pred = hom[:, :2] / hom[:, 2:3]
-        has = prev.assoc.point_landmark >= 0
-        if has.any():
-            pw = self.map.point_positions(prev.assoc.point_landmark[has])
-            puv, z = project(self.K, se3.transform_points(se3.inv(T_pred), pw))
-            ok = np.isfinite(puv).all(axis=1) & (z > 0)
-            rows = np.flatnonzero(has)[ok]
-            pred[rows] = puv[ok]
-        return pred
-
-    def _predict_segments(self, prev: _FrameState, T_pred: np.ndarray) -> np.ndarray:
-        """(M_prev,4) predicted segments: the previous segment's ends lifted onto their 3D line landmark (closest
-        points to the end rays) and projected with the predicted pose; by rotation alone without a landmark."""
-        seg = prev.features.segments.astype(float)
-        H = self._rotation_homography(prev.T_world_cam, T_pred)
-        ends = np.c_[seg.reshape(-1, 2), np.ones(2 * len(seg))] @ H.T
-        pred = (ends[:, :2] / ends[:, 2:3]).reshape(-1, 4)
-        has = prev.assoc.line_landmark >= 0
-        if has.any():
-            Lw = self.map.line_endpoints(prev.assoc.line_landmark[has])
-            T_prev_world = se3.inv(prev.T_world_cam)
-            lifted = closest_points_on_lines(
-                se3.transform_points(T_prev_world, Lw[:, 0]), se3.transform_points(T_prev_world, Lw[:, 1]),
-                pixel_rays(self.K, seg[has].reshape(-1, 2)).reshape(-1, 2, 3))
-            pc = se3.transform_points(se3.inv(T_pred) @ prev.T_world_cam, lifted.reshape(-1, 3))
-            puv, z = project(self.K, pc)
-            puv = puv.reshape(-1, 4)
-            ok = np.isfinite(puv).all(axis=1) & (z.reshape(-1, 2) > 0).all(axis=1)
-            pred[np.flatnonzero(has)[ok]] = puv[ok]
-        return pred
 
     def _correspondences(self, prev: _FrameState, feats: FeatureSet, pm: Matches, lm: Matches) -> dict:
         """3D-2D matches from the 2D-2D matches whose previous feature is tracked to a live landmark."""
@@ -262,36 +242,69 @@ class Frontend:
         }
 
     def _search_landmarks(self, feats: FeatureSet, T: np.ndarray, corr: dict, p_in: np.ndarray, l_in: np.ndarray,
-                          radius_px: float | None = None, refine: bool = True):
-        """Re-find point landmarks of the recent keyframes that the frame-to-frame matching lost: project them with
-        pose T, match by descriptor within radius_px (cfg.tracking.search_radius_px), refine the pose on all.
+                          widen: float = 1.0, refine: bool = True):
+        """Re-find landmarks of the recent keyframes (and, for lines, of the previous frame) that the
+        frame-to-frame matching lost: project them with pose T, match by descriptor near the projection (points
+        within cfg.tracking.search_radius_px, lines on the projected line, see plvo.tracking.search), refine the
+        pose on all. widen scales the windows (the rescue after a failed solve).
         (An addition to the paper's frame-to-frame scheme: without it most landmarks live two or three frames.)
         Returns (T, corr extended by the found matches, point inliers, line inliers)."""
         cfg = self.cfg.tracking
         if cfg.search_keyframes <= 0 or not self._recent_kfs:
             return T, corr, p_in, l_in
-        cand = np.unique(np.concatenate([kf.assoc.point_landmark for kf in self._recent_kfs]))
-        cand = np.setdiff1d(cand[cand >= 0], corr["p_lm"])
-        cand = cand[self.map.point_alive(cand)]
-        if len(cand) == 0:
+        corr = dict(corr)
+        n_p = self._search_points(feats, T, corr, widen * cfg.search_radius_px)
+        n_l = self._search_lines(feats, T, corr, widen) if self.uses_lines and cfg.search_lines else 0
+        if n_p + n_l == 0:
             return T, corr, p_in, l_in
+        p_in = np.r_[p_in, np.zeros(n_p, bool)]
+        l_in = np.r_[l_in, np.zeros(n_l, bool)]
+        if refine:
+            T, p_in, l_in = refine_pose(self.K, T, corr["pts"], corr["uv"], corr["lines"], corr["segs"], cfg)
+        return T, corr, p_in, l_in
+
+    def _search_candidates(self, kind: str, matched: np.ndarray) -> np.ndarray:
+        views = list(self._recent_kfs) + ([self._prev] if kind == "line" and self._prev is not None else [])
+        ids = np.unique(np.concatenate([getattr(v.assoc, f"{kind}_landmark") for v in views]))
+        ids = np.setdiff1d(ids[ids >= 0], matched)
+        return ids[(self.map.point_alive if kind == "point" else self.map.line_alive)(ids)]
+
+    def _search_points(self, feats: FeatureSet, T: np.ndarray, corr: dict, radius_px: float) -> int:
+        """Extend corr (in place) by point landmarks found near their projection; returns how many."""
+        cand = self._search_candidates("point", corr["p_lm"])
+        if len(cand) == 0:
+            return 0
         uv, z = project(self.K, se3.transform_points(se3.inv(T), self.map.point_positions(cand)))
         uv[(z < 0.5) | ~in_image(uv, self.calib.width, self.calib.height)] = np.nan
         free = np.ones(feats.n_points, bool)
         free[corr["p_cur"]] = False
         rows, kps = search_by_projection(uv, self.map.point_descriptors(cand), feats.keypoints, feats.descriptors,
-                                         free, radius_px or cfg.search_radius_px, self.cfg.matching.point_max_hamming)
-        if len(rows) == 0:
-            return T, corr, p_in, l_in
-        corr = dict(corr)
+                                         free, radius_px, self.cfg.matching.point_max_hamming)
         corr["p_lm"] = np.r_[corr["p_lm"], cand[rows]]
         corr["p_cur"] = np.r_[corr["p_cur"], kps]
         corr["pts"] = np.r_[corr["pts"], self.map.point_positions(cand[rows])]
-        corr["uv"] = np.r_[corr["uv"], feats.keypoints[kps].astype(float)]
-        p_in = np.r_[p_in, np.zeros(len(rows), bool)]
-        if refine:
-            T, p_in, l_in = refine_pose(self.K, T, corr["pts"], corr["uv"], corr["lines"], corr["segs"], cfg)
-        return T, corr, p_in, l_in
+        corr["uv"] = np.r_[corr["uv"], feats.keypoints[kps].astype(float).reshape(-1, 2)]
+        return len(rows)
+
+    def _search_lines(self, feats: FeatureSet, T: np.ndarray, corr: dict, widen: float) -> int:
+        """Extend corr (in place) by line landmarks found on their projected line; returns how many."""
+        cfg = self.cfg.tracking
+        cand = self._search_candidates("line", corr["l_lm"])
+        if len(cand) == 0 or feats.n_lines == 0:
+            return 0
+        ends = self.map.line_endpoints(cand)
+        proj = project_segments(self.K, T, ends, self.calib.width, self.calib.height)
+        free = np.ones(feats.n_lines, bool)
+        free[corr["l_cur"]] = False
+        rows, segs = search_lines_by_projection(
+            proj, self.map.line_descriptors(cand), feats.segments, feats.line_descriptors, free,
+            widen * cfg.line_search_px, widen * cfg.line_search_angle_deg, cfg.line_search_overlap,
+            self.cfg.matching.line_max_lbd)
+        corr["l_lm"] = np.r_[corr["l_lm"], cand[rows]]
+        corr["l_cur"] = np.r_[corr["l_cur"], segs]
+        corr["lines"] = np.r_[corr["lines"], ends[rows]]
+        corr["segs"] = np.r_[corr["segs"], feats.segments[segs].astype(float).reshape(-1, 4)]
+        return len(rows)
 
     def _rescue(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray, corr: dict,
                 timings: dict[str, float]):
@@ -301,13 +314,10 @@ class Frontend:
         t = time.perf_counter()
         none = np.zeros(len(corr["p_lm"]), bool)
         _, wide, _, _ = self._search_landmarks(feats, T_pred, corr, none, np.zeros(len(corr["l_lm"]), bool),
-                                               radius_px=3 * self.cfg.tracking.search_radius_px, refine=False)
+                                               widen=3.0, refine=False)
         sol = solve_pnpl(self.K, wide["pts"], wide["uv"], wide["lines"], wide["segs"], T_pred, self.cfg.tracking)
         if not sol.success:
-            pm = self._match_points(prev.features, feats, self.cfg.matching, predicted_uv=None)
-            lm = _no_matches()
-            if self.uses_lines and prev.features.n_lines and feats.n_lines:
-                lm = self._match_lines(prev.features, feats, self.cfg.matching, predicted_segments=None)
+            pm, lm = self._match(prev, feats, None)
             free = self._correspondences(prev, feats, pm, lm)
             sol_free = solve_pnpl(self.K, free["pts"], free["uv"], free["lines"], free["segs"], None,
                                   self.cfg.tracking)
@@ -423,3 +433,8 @@ class Frontend:
 
 def _no_matches() -> Matches:
     return Matches(np.zeros((0, 2), np.int64), np.zeros(0))
+
+
+def _remap(m: Matches, prev_rows: np.ndarray) -> Matches:
+    """Matches of a subset of the previous features -> matches indexing the full set."""
+    return Matches(np.c_[prev_rows[m.pairs[:, 0]], m.pairs[:, 1]].astype(np.int64).reshape(-1, 2), m.distance)

@@ -15,6 +15,7 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
 
@@ -354,12 +355,13 @@ class FrameAssociation:
         return int((self.line_landmark >= 0).sum())
 
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+SEARCH_NEIGHBOURS = 12  # keypoints considered around a projected landmark (more within the radius are rare)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(k,32) uint8, (k,32) uint8 -> (k,) row-wise Hamming distances."""
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1)
+    x = np.ascontiguousarray(a).view(np.uint64) ^ np.ascontiguousarray(b).view(np.uint64)
+    return np.bitwise_count(x).sum(axis=1, dtype=np.int32)
 
 
 def search_by_projection(uv_landmarks: np.ndarray, desc_landmarks: np.ndarray, keypoints: np.ndarray,
@@ -371,16 +373,17 @@ def search_by_projection(uv_landmarks: np.ndarray, desc_landmarks: np.ndarray, k
     Each landmark takes the free keypoint with the smallest Hamming distance (<= max_hamming) within radius_px
     of its projection; conflicts go to the smaller distance.
     """
-    from scipy.spatial import cKDTree
-
     ok = np.flatnonzero(np.isfinite(uv_landmarks).all(axis=1))
     cand = np.flatnonzero(free)
     if len(ok) == 0 or len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    near = cKDTree(keypoints[cand]).query_ball_point(uv_landmarks[ok], radius_px)
-    counts = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
-    rows = np.repeat(ok, counts)
-    kps = cand[np.fromiter((j for n in near for j in n), dtype=np.int64, count=int(counts.sum()))]
+    # The SEARCH_NEIGHBOURS nearest keypoints within the radius (fixed-shape arrays: no Python loop per landmark).
+    k = min(SEARCH_NEIGHBOURS, len(cand))
+    d, j = cKDTree(keypoints[cand]).query(uv_landmarks[ok], k=k, distance_upper_bound=radius_px)
+    d, j = d.reshape(len(ok), k), j.reshape(len(ok), k)
+    hit = np.isfinite(d)
+    rows = np.repeat(ok, k).reshape(len(ok), k)[hit]
+    kps = cand[j[hit]]
     if len(rows) == 0:
         return rows, kps
     dist = hamming(desc_landmarks[rows], descriptors[kps])
