@@ -98,3 +98,19 @@ def test_bad_input_names_the_field():
     with pytest.raises(PlvoError, match="fixed"):
         BAProblem(K=truth.K, T_world_cam=truth.T_world_cam, fixed=np.zeros(3, bool), points=truth.points,
                   pt_kf=truth.pt_kf, pt_idx=truth.pt_idx, pt_uv=truth.pt_uv, pt_depth=truth.pt_depth)
+
+
+def test_single_view_landmarks_move_rigidly_with_their_keyframe(noisy):
+    """A landmark seen by one keyframe tells the poses nothing; it is left out and carried by its keyframe."""
+    truth, p = noisy
+    extra_pt = np.array([[1.0, 0.5, 20.0 + 5.0 * 5]])  # a point in front of the last keyframe, one observation
+    k = 5
+    uv = (p.K @ se3.transform_points(se3.inv(truth.T_world_cam[k]), extra_pt).T).T
+    uv = uv[:, :2] / uv[:, 2:]
+    q = dataclasses.replace(p, points=np.r_[p.points, extra_pt], pt_kf=np.r_[p.pt_kf, k],
+                            pt_idx=np.r_[p.pt_idx, p.n_points], pt_uv=np.r_[p.pt_uv, uv], pt_depth=np.r_[p.pt_depth, 25.0])
+    res = optimize(q)
+    assert res.point_used[-1]
+    move = res.T_world_cam[k] @ se3.inv(q.T_world_cam[k])
+    np.testing.assert_allclose(res.points[-1], se3.transform_points(move, extra_pt)[0], atol=1e-9)
+    assert np.linalg.norm(move[:3, 3]) > 0.01  # the keyframe did move (the noise on it is removed)

@@ -150,3 +150,24 @@ def test_fast_solver_cost_equals_gtsam_graph_error():
     lay, sel = ba._Layout(p, pt_ok, no_lines), ba._select(p, pt_ok, no_lines, True)
     ours = ba._evaluate(p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M).cost()
     assert abs(ours - graph.error(values)) <= 1e-6 * ours
+
+
+def test_relpose_batch_helpers_match_scalar_se3_and_weights_scale_rows():
+    from plvo.backend import relpose
+
+    rng = np.random.default_rng(5)
+    xis = [rng.normal(0, 1, 6), rng.normal(0, 1e-5, 6), np.r_[0.3, -0.2, 0.1, 0.0, 0.0, np.pi - 1e-4], np.zeros(6)]
+    T = np.stack([se3.exp(x) for x in xis])
+    L = relpose.log_batch(T)
+    for k in range(len(T)):
+        np.testing.assert_allclose(L[k], se3.log(T[k]), atol=1e-9)
+        np.testing.assert_allclose(relpose.inv_batch(T)[k], se3.inv(T[k]), atol=1e-12)
+        np.testing.assert_allclose(relpose.adjoint_batch(T)[k], se3.adjoint(T[k]), atol=1e-12)
+    Ti, Tj = T[:2], T[2:]
+    meas = np.stack([se3.exp(rng.normal(0, 0.1, 6)) for _ in range(2)])
+    w = np.r_[4.0, 4.0, 4.0, 100.0, 100.0, 100.0]
+    r1, Ji1, Jj1 = ba.relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]))
+    r2, Ji2, Jj2 = ba.relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]), w)
+    np.testing.assert_allclose(r2, r1 * np.sqrt(w), rtol=1e-12)
+    np.testing.assert_allclose(Ji2, Ji1 * np.sqrt(w)[:, None], rtol=1e-12)
+    np.testing.assert_allclose(Jj2, Jj1 * np.sqrt(w)[:, None], rtol=1e-12)

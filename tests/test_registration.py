@@ -66,9 +66,11 @@ def test_ndt_recovers_ground_truth_from_perturbed_guess(data, k):
     assert _err(res.T_camdst_camsrc, gt_cam)[0] < 0.10
 
 
-def test_zeta_follows_the_papers_formula(data):
-    """zeta = exp(-2 (e_hat/e_bar)^2): about exp(-2) = 0.135 when the tracker's guess already agrees with the
-    registration, near 0 when the tracker is off (here 20 % scale error, which NDT still corrects)."""
+def test_zeta_formulas(data):
+    """The default ("inverse") zeta = exp(-2 (e_bar/e_hat)^2): about exp(-2) = 0.135 when the tracker's guess already
+    agrees with the registration, near 1 when the registration is much better than the tracker (here 20 % scale
+    error, which NDT corrects), near 0 when the registration is worse than the guess (a corrupted result). The
+    paper's printed formula, exp(-2 (e_hat/e_bar)^2), does the opposite in both cases."""
     k = 10
     gt = data.T_velo(k + 3, k)
     good = align(data.scan(k), data.scan(k + 3), gt, RegistrationConfig(), data.Tr)
@@ -78,11 +80,19 @@ def test_zeta_follows_the_papers_formula(data):
     assert good.converged and bad.converged
     assert _err(bad.T_dst_src, gt)[0] < 0.10  # the registration itself is fine
     assert bad.e_hat > 1.5 * bad.e_bar
-    assert bad.zeta < 0.01, bad.zeta
-    assert 0.05 < good.zeta <= np.exp(-2.0) * 1.01, good.zeta
-    assert bad.zeta == pytest.approx(np.exp(-2 * (bad.e_hat / bad.e_bar) ** 2))
-    inverse = zeta_from_errors(bad.e_hat, bad.e_bar, "inverse")
-    assert inverse > 0.3  # the alternative reading trusts a registration much better than the tracker
+    assert bad.zeta > 0.3, bad.zeta  # trust a registration much better than the tracker
+    assert 0.1 < good.zeta < 0.3, good.zeta
+    assert bad.zeta == pytest.approx(np.exp(-2 * (bad.e_bar / bad.e_hat) ** 2))
+    assert zeta_from_errors(bad.e_hat, bad.e_bar, "paper") < 0.01
+    # a registration result 0.5 m / 1 deg off (what a corrupted or slid NDT gives), judged against a good guess
+    p, q = np.asarray(data.scan(k))[:, :3], np.asarray(data.scan(k + 3))[:, :3]
+    from plvo.lidar.registration import _errors, prepare
+    cfg = RegistrationConfig()
+    wrong = gt @ se3.exp(np.r_[0.5, 0.0, 0.0, 0.0, 0.0, np.radians(1.0)])
+    e_hat, e_bar = _errors(prepare(p, cfg).cloud, prepare(q, cfg).cloud, gt, wrong, cfg.max_correspondence_m)
+    assert e_bar > 1.5 * e_hat
+    assert zeta_from_errors(e_hat, e_bar, "inverse") < 0.02  # measured 0.010 (0.135 for an agreeing one)
+    assert zeta_from_errors(e_hat, e_bar, "paper") > 0.3
 
 
 def test_fallback_used_when_ndt_fails(data):
@@ -107,3 +117,16 @@ def test_bad_input_raises(data):
         align(np.zeros((10, 5)), data.scan(0), np.eye(4))
     with pytest.raises(PlvoError, match="zeta_formula"):
         zeta_from_errors(1.0, 1.0, "other")
+
+
+def test_prepared_scans_give_the_same_result(data):
+    from plvo.lidar.registration import prepare
+
+    k, cfg = 20, RegistrationConfig()
+    init = _perturb(data.T_velo(k + 3, k), scale=1.02, yaw_deg=0.2, lateral_m=0.05)
+    a = align(data.scan(k), data.scan(k + 3), init, cfg, data.Tr)
+    b = align(prepare(data.scan(k), cfg), prepare(data.scan(k + 3), cfg), init, cfg, data.Tr)
+    np.testing.assert_allclose(a.T_dst_src, b.T_dst_src, atol=1e-9)
+    assert a.zeta == pytest.approx(b.zeta)
+    with pytest.raises(PlvoError, match="voxel_m"):
+        align(prepare(data.scan(k), cfg), data.scan(k + 3), init, dataclasses.replace(cfg, voxel_m=1.0))

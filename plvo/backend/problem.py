@@ -37,7 +37,8 @@ class BAProblem:
     point_obs: pt_kf (O,), pt_idx (O,), pt_uv (O,2) px, pt_depth (O,) z metres in that camera or NaN;
     lines (L,2,3) world endpoints; line_obs: ln_kf (M,), ln_idx (M,), ln_seg (M,4) px, ln_prior (M,2,3) endpoints
     in that camera or NaN; relative poses: rel_ij (R,2) keyframe indices (i, j), rel_T (R,4,4) T_cam_i_cam_j,
-    rel_zeta (R,) information scale.
+    rel_zeta (R,) information scale; rel_weight (6,) per-component information in (rho, phi) order shared by all
+    relative-pose factors (information = rel_zeta[r] * diag(rel_weight); ones: the paper's zeta I).
     """
 
     K: np.ndarray
@@ -56,6 +57,7 @@ class BAProblem:
     rel_ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     rel_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     rel_zeta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rel_weight: np.ndarray = field(default_factory=lambda: np.ones(6))
 
     def __post_init__(self) -> None:
         _check("K", self.K, (3, 3))
@@ -74,6 +76,7 @@ class BAProblem:
         n_r = _check("rel_ij", self.rel_ij, (None, 2)).shape[0]
         _check("rel_T", self.rel_T, (n_r, 4, 4))
         _check("rel_zeta", self.rel_zeta, (n_r,))
+        _check("rel_weight", self.rel_weight, (6,))
         for name, idx, n in (
             ("pt_kf", self.pt_kf, n_kf), ("pt_idx", self.pt_idx, n_pt), ("ln_kf", self.ln_kf, n_kf),
             ("ln_idx", self.ln_idx, n_ln), ("rel_ij", self.rel_ij, n_kf),
@@ -84,6 +87,8 @@ class BAProblem:
             raise PlvoError("BAProblem: fields 'T_world_cam' and 'points' must be finite")
         if np.any(np.asarray(self.rel_zeta) < 0):
             raise PlvoError("BAProblem: field 'rel_zeta' must be >= 0")
+        if np.any(~np.isfinite(self.rel_weight)) or np.any(np.asarray(self.rel_weight) < 0):
+            raise PlvoError("BAProblem: field 'rel_weight' must be finite and >= 0")
 
     @property
     def n_keyframes(self) -> int:

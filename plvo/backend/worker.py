@@ -1,9 +1,17 @@
 """The back end as the System runs it (paper II-D, II-E): one call a keyframe, in a worker thread or inline.
 
 For each keyframe K_i: register its scan to K_{i-1}'s (NDT seeded by the tracker's relative pose) -> a
-relative-pose factor with information w * zeta; scale correction of K_i alone (older keyframes fixed); then a
+relative-pose factor with information zeta diag(1/sigma_t^2 x3, 1/sigma_r^2 x3) (BackendConfig
+sigma_relative_pose, sigma_relative_rotation_deg); scale correction of K_i alone (older keyframes fixed); then a
 point-line bundle adjustment over the last `window_keyframes` keyframes (the oldest fixed). The refined poses and
-landmarks are written into the shared LandmarkMap in one `apply_update`; the tracker follows them.
+landmarks are written into the shared LandmarkMap in one `apply_update`; the tracker follows them. A result that
+moves a keyframe further than a registration may jump (RegistrationConfig.max_jump_*) is discarded.
+
+Why the back end made seq 04 worse before issue 8's fixes, and what changed: the tracker's keyframe-to-keyframe
+translation is ~1 % too long (depth-prior scale), NDT's is right to 0.1 %; but with the old 0.05 m / 0.05 rad base
+sigma the relative-pose factor weighed ~1e-3 of the 0.1 px reprojection factors, so the BA kept the visual scale
+and only added noise (1.22 / 1.12 / 1.04 % vs odometry's 1.05 / 0.90 / 0.84 %). With 0.5 mm / 0.5 mrad the BA
+follows the registration's scale (0.73 / 0.57 / 0.40 %; KISS-ICP 0.74 / 0.63 / 0.55 %).
 
 Thread, not process: the map is shared in memory and the heavy parts (open3d's NDT/ICP, scipy's SuperLU, numpy
 on large arrays) release the GIL, so a thread overlaps with the tracker without copying the map. With
@@ -28,7 +36,7 @@ from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import SystemConfig
 from plvo.geometry import se3
-from plvo.lidar.registration import RegistrationResult, align
+from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
 from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, GraphResult, MapResult, MetricsResult
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
@@ -52,7 +60,7 @@ class _KfData:
     """What the back end keeps of a keyframe: its scan for the next registration and its depth priors."""
 
     frame_index: int
-    scan: np.ndarray | None
+    scan: PreparedScan | None  # downsampled once: the source of this keyframe's registration, the next one's target
     point_depth: np.ndarray | None  # (N,) z per feature, NaN none
     line_prior: np.ndarray | None  # (M,2,3) camera-frame endpoints per segment, NaN none
 
@@ -92,15 +100,15 @@ class Backend(KeyframeWorker):
         """Register, correct scale, bundle-adjust, write back into the map; returns what it did."""
         seconds: dict[str, float] = {}
         priors = kf.depth_priors
+        t = time.perf_counter()
         self._kfs[kf.kf_id] = _KfData(
-            kf.frame_index, kf.frame.scan,
+            kf.frame_index, prepare(kf.frame.scan, self.cfg.registration, f"frame {kf.frame_index} scan"),
             None if priors is None else priors.point_depth, None if priors is None else priors.line_endpoints,
         )
         reg = None
         if self._last_kf is not None:
-            t = time.perf_counter()
             reg = self._register(self._last_kf, kf.kf_id)
-            seconds["registration"] = time.perf_counter() - t
+        seconds["registration"] = time.perf_counter() - t
         prev_kf = self._last_kf
         self._forget_scan(prev_kf)
         self._last_kf = kf.kf_id
@@ -114,13 +122,17 @@ class Backend(KeyframeWorker):
                     t = time.perf_counter()
                     before = problem.T_world_cam[newest].copy()
                     res = correct_scale(problem, newest, self.cfg.backend, **self._opt_kwargs())
-                    problem = _with_values(problem, res)
-                    scale = scale_factor(before, res.T_world_cam[newest], problem.T_world_cam[newest - 1])
+                    if _sane(problem, res, self.cfg.registration):
+                        problem = _with_values(problem, res)
+                        scale = scale_factor(before, res.T_world_cam[newest], problem.T_world_cam[newest - 1])
                     seconds["scale_correction"] = time.perf_counter() - t
                 t = time.perf_counter()
                 ba = optimize(problem, self.cfg.backend, **self._opt_kwargs())
                 seconds["bundle_adjustment"] = time.perf_counter() - t
-                self._write_back(window, ids, ba)
+                if _sane(problem, ba, self.cfg.registration):
+                    self._write_back(window, ids, ba)
+                else:
+                    ba = None
         seconds["backend"] = sum(seconds.values())
         step = BackendStep(kf.kf_id, reg, scale, ba, seconds)
         self.steps.append(step)
@@ -129,10 +141,11 @@ class Backend(KeyframeWorker):
         return step
 
     def _opt_kwargs(self) -> dict:
-        return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines}
+        return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines,
+                "stereo_baseline_m": self.cfg.backend.stereo_baseline_m}
 
     def _forget_scan(self, kf_id: int | None) -> None:
-        # Only the newest scan is needed for the next registration; older ones would cost ~2 MB a keyframe.
+        # Only the newest scan is needed for the next registration; older ones would cost ~1 MB a keyframe.
         if kf_id is not None and kf_id in self._kfs:
             self._kfs[kf_id].scan = None
 
@@ -187,10 +200,12 @@ class Backend(KeyframeWorker):
             )
         edges = [e for e in self._edges if e.i in kf_row and e.j in kf_row]
         if edges:
-            w = 1.0 / self.cfg.backend.sigma_relative_pose**2
+            b = self.cfg.backend
             args.update(
                 rel_ij=np.array([[kf_row[e.i], kf_row[e.j]] for e in edges], int),
-                rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([w * e.zeta for e in edges]),
+                rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([e.zeta for e in edges]),
+                rel_weight=np.r_[np.full(3, b.sigma_relative_pose**-2),
+                                 np.full(3, np.radians(b.sigma_relative_rotation_deg) ** -2)],
             )
         return BAProblem(**args), {"points": pt_ids, "lines": ln_ids}
 
@@ -248,6 +263,21 @@ class Backend(KeyframeWorker):
             local = MapResult(frame_index, snap.point_positions, snap.line_endpoints)
         return [graph, local,
                 MetricsResult(frame_index, values)]
+
+
+def _sane(problem: BAProblem, res: BAResult, reg_cfg) -> bool:
+    """False (and a warning) when an optimisation moved a keyframe further than a registration may jump
+    (max_jump_m / max_jump_deg) or produced non-finite values: such a result is discarded, not written."""
+    ok = bool(np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.points[res.point_used])))
+    for T0, T1 in zip(problem.T_world_cam, res.T_world_cam) if ok else ():
+        move = se3.inv(T0) @ T1
+        if np.linalg.norm(move[:3, 3]) > reg_cfg.max_jump_m or np.degrees(se3.rotation_angle(move)) > reg_cfg.max_jump_deg:
+            ok = False
+            break
+    if not ok:
+        log.warning("back end: an optimisation moved a keyframe by more than %.1f m / %.0f deg or diverged; discarded",
+                    reg_cfg.max_jump_m, reg_cfg.max_jump_deg)
+    return ok
 
 
 def _with_values(problem: BAProblem, res: BAResult) -> BAProblem:
