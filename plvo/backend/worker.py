@@ -133,7 +133,9 @@ class Backend(KeyframeWorker):
                     self._write_back(window, ids, ba)
                 else:
                     ba = None
-        seconds["backend"] = sum(seconds.values())
+        if "bundle_adjustment" in seconds:  # the design's budget is for the two together
+            seconds["scale_correction_ba"] = seconds.get("scale_correction", 0.0) + seconds["bundle_adjustment"]
+        seconds["backend"] = seconds.get("registration", 0.0) + seconds.get("scale_correction_ba", 0.0)
         step = BackendStep(kf.kf_id, reg, scale, ba, seconds)
         self.steps.append(step)
         self.add_timing(seconds)

@@ -334,11 +334,6 @@ def system_stages(runs: Sequence[SystemRun]) -> dict[str, dict]:
     pooled = _pool(runs)
     for run in runs:
         pooled["matching_pnpl"].extend(f["matching"] + f.get("pnpl", 0.0) for f in run.per_frame if "matching" in f)
-        reg, be = run.timings.get("registration", []), run.timings.get("backend", [])
-        if len(be) == len(reg) + 1:  # every keyframe after the first is registered: align them by keyframe
-            pooled["scale_correction_ba"].extend(b - r for b, r in zip(be[1:], reg))
-        elif reg or be:
-            log.warning("bench: back-end timings do not line up by keyframe; scale_correction_ba left out")
     names = ("pnpl", "matching_pnpl", "scale_correction", "bundle_adjustment", "scale_correction_ba", "backend",
              "loop_query", "loop_verify", "loop_correct", "loop")
     return {n: stage_stats(pooled.get(n, []), BUDGET_MS.get(n), "system") for n in names}
