@@ -143,10 +143,17 @@ class System:
                     self._clock.add(name, seconds)
             self.n_lost += int(not res.ok)
             self._emit(frame.index, [r for r in (res.features, res) if r is not None])
+            # The frame's pose relative to its reference keyframe, taken before inline workers move that keyframe
+            # (a keyframe frame is its own reference).
+            T = np.asarray(res.T_world_cam, float)
+            if res.keyframe is not None:
+                self._ref_kf = res.keyframe.kf_id
+                T_ref = np.asarray(res.keyframe.T_world_cam, float)
+            else:
+                T_ref = self.map.keyframe_pose(self._ref_kf)
+            self._frame_ref[frame.index] = (self._ref_kf, se3.inv(T_ref) @ T)
             if res.keyframe is not None:
                 keyframe = self._on_keyframe(frame, res)
-            self._frame_ref[frame.index] = (self._ref_kf, se3.inv(self.map.keyframe_pose(self._ref_kf))
-                                            @ np.asarray(res.T_world_cam, float))
             self._collect()
         seconds = dict(self._clock.seconds)
         for name, value in seconds.items():
@@ -158,7 +165,6 @@ class System:
 
     def _on_keyframe(self, frame: Frame, res) -> KeyframeResult:
         kf = res.keyframe
-        self._ref_kf = kf.kf_id
         keyframe = KeyframeResult(frame.index, kf.kf_id, np.asarray(kf.T_world_cam), res.keyframe_reason)
         self._emit(frame.index, [keyframe, *self._depth_debug])
         self._depth_debug = []

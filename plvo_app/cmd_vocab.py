@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--k", type=int, default=10, help="branching factor")
     parser.add_argument("--depth", type=int, default=0,
                         help="tree depth; 0: chosen from the number of descriptors (about 10 per word)")
+    parser.add_argument("--max-words", type=int, default=10_000,
+                        help="an automatic depth gives at most this many words (k^depth); keeps the shipped "
+                             "files small (k=10: 10,000 words is ~0.4 MB)")
     parser.add_argument("--seed", type=int, default=0, help="clustering seed")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -64,9 +67,12 @@ def _sequence_images(spec: str) -> list[Path]:
     return _list_images(Path(root) / "sequences" / seq / "image_0")
 
 
-def auto_depth(n_desc: int, k: int) -> int:
-    """Depth giving about 10 training descriptors per word, clamped to 3..6."""
-    return int(np.clip(round(np.log(max(n_desc, 1) / 10.0) / np.log(k)), 3, 6))
+def auto_depth(n_desc: int, k: int, max_words: int = 10_000) -> int:
+    """Depth giving about 10 training descriptors per word, clamped to 3..6 and to k^depth <= max_words."""
+    depth = int(np.clip(round(np.log(max(n_desc, 1) / 10.0) / np.log(k)), 3, 6))
+    while depth > 1 and k**depth > max_words:
+        depth -= 1
+    return depth
 
 
 def _extract(sources: dict[str, list[Path]], show: bool):
@@ -92,7 +98,7 @@ def _train(name: str, descs: list[np.ndarray], args, info: str, show: bool) -> t
     n = int(sum(len(d) for d in descs))
     if n == 0:
         raise PlvoError(f"vocab: no {name} descriptors were found in the training images")
-    depth = args.depth or auto_depth(n, args.k)
+    depth = args.depth or auto_depth(n, args.k, args.max_words)
     t0 = time.perf_counter()
     with tqdm(total=n, unit="desc", desc=f"{name} tree k={args.k} L={depth}", disable=not show) as bar:
         vocab = Vocabulary.train(descs, k=args.k, depth=depth, seed=args.seed, progress=bar.update, info=info)

@@ -201,3 +201,20 @@ def test_thin_scan_keeps_one_point_per_voxel():
     keys = np.floor(thin[:, :3] / 1.0)
     assert len(np.unique(keys, axis=0)) == len(thin)
     assert len(thin) == len(np.unique(np.floor(scan[:, :3]), axis=0))
+
+
+def test_loop_contradicting_the_odometry_is_rejected():
+    """A verified edge that would move the query keyframe far more than odometry can drift is a repeated place."""
+    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig())  # vocabularies unused here
+    empty = np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
+    poses = [se3.exp(np.array([0.0, 0.0, 5.0 * i, 0.0, 0.0, 0.0])) for i in range(10)]  # 5 m apart, straight on
+    for i, T in enumerate(poses):
+        closer._store(LoopKeyframe(i, T, *empty))
+    truth = se3.inv(poses[0]) @ poses[9]  # 45 m driven: up to 0.1 * 45 + 2 = 6.5 m of drift is plausible
+    drifted = truth @ se3.exp(np.array([3.0, 0.0, 3.0, 0.0, 0.02, 0.0]))
+    assert closer._implausible(9, 0, truth) == ""
+    assert closer._implausible(9, 0, drifted) == ""  # 4.2 m off
+    reason = closer._implausible(9, 0, np.eye(4))  # "the same place" after 45 m: a look-alike street
+    assert "45.0 m" in reason and "repeated place" in reason
+    closer.cfg = LoopConfig(max_drift_fraction=0)  # the gate switched off
+    assert closer._implausible(9, 0, np.eye(4)) == ""

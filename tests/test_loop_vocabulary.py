@@ -56,9 +56,10 @@ def test_self_score_one_and_shifted_crop_far_above_unrelated(orb_vocab, features
     bows = [orb_vocab.transform(f.descriptors) for f in features]
     assert l1_score(bows[0], bows[0]) == pytest.approx(1.0)
     unrelated = max(l1_score(bows[0], b) for b in bows[3:])
-    # Measured with the shipped vocabulary: shifted ~0.4, moved ~0.2, unrelated <= ~0.1.
-    assert l1_score(bows[0], bows[1]) > 2.5 * unrelated
-    assert l1_score(bows[0], bows[2]) > 1.5 * unrelated
+    # Measured with the shipped 10,000-word vocabulary: shifted 0.48, moved 0.27, unrelated 0.17-0.20 (the coarser
+    # tree lets unrelated procedural images share more words than the 91,000-word one did: 0.40 / 0.15 / <= 0.08).
+    assert l1_score(bows[0], bows[1]) > 2.0 * unrelated
+    assert l1_score(bows[0], bows[2]) > unrelated + 0.05
 
 
 def test_l1_score_matches_dbow2_formula():

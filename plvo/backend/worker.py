@@ -222,13 +222,18 @@ class Backend(KeyframeWorker):
     def _write_back(self, window: list[int], ids: dict, ba: BAResult) -> None:
         """Write the window into the map; move keyframes (and their landmarks) made meanwhile rigidly along."""
         with self.map.lock:
+            # The window's first keyframe was held fixed. If the loop closer moved it while we optimised, the
+            # result is rebased onto its new pose rather than undoing the loop correction.
+            rebase = self.map.keyframe_pose(window[0]) @ se3.inv(ba.T_world_cam[0])
+            ba_poses = rebase @ ba.T_world_cam
             newest = window[-1]
-            correction = ba.T_world_cam[-1] @ se3.inv(self.map.keyframe_pose(newest))
+            correction = ba_poses[-1] @ se3.inv(self.map.keyframe_pose(newest))
             later = list(range(newest + 1, self.map.n_keyframes))
             kf_ids = window + later
-            poses = list(ba.T_world_cam) + [correction @ self.map.keyframe_pose(k) for k in later]
-            pt_ids, pts = ids["points"][ba.point_used], ba.points[ba.point_used]
-            ln_ids, lns = ids["lines"][ba.line_used], ba.lines[ba.line_used]
+            poses = list(ba_poses) + [correction @ self.map.keyframe_pose(k) for k in later]
+            pt_ids, pts = ids["points"][ba.point_used], se3.transform_points(rebase, ba.points[ba.point_used])
+            ln_ids = ids["lines"][ba.line_used]
+            lns = se3.transform_points(rebase, ba.lines[ba.line_used].reshape(-1, 3)).reshape(-1, 2, 3)
             if later:
                 new_p, new_l = self.map.landmarks_first_seen_after(newest)
                 pt_ids = np.r_[pt_ids, new_p]

@@ -11,6 +11,7 @@ edge of a new keyframe is measured against the closer's estimate of the previous
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -177,6 +178,11 @@ class LoopCloser:
         checks, rejections = [], []
         for cid in det.to_verify:
             v = verify(query, self._kfs[cid], self.K, self.cfg, self.T_cam_velo, self.reg_cfg)
+            if v.accepted:
+                why = self._implausible(kf.kf_id, cid, v.T_cand_query)
+                if why:
+                    log.info("loop candidate %d for keyframe %d rejected: %s", cid, kf.kf_id, why)
+                    v = dataclasses.replace(v, accepted=False, reason=why)
             checks.append(v)
             if v.accepted:
                 edge = LoopEdge(kf.kf_id, cid, v.T_cand_query, v.n_point_inliers + v.n_line_inliers, v.registered)
@@ -185,6 +191,20 @@ class LoopCloser:
                 return tuple(checks), edge, tuple(rejections)
             rejections.append(f"candidate {cid}: {v.reason}")
         return tuple(checks), None, tuple(rejections)
+
+    def _implausible(self, query_id: int, match_id: int, T_match_query: np.ndarray) -> str:
+        """Why a verified edge contradicts the odometry (a repeated place, not a revisit), or "" when it does not."""
+        if self.cfg.max_drift_fraction <= 0:
+            return ""
+        T_est = se3.inv(self._poses[match_id]) @ self._poses[query_id]
+        jump = float(np.linalg.norm((se3.inv(T_est) @ T_match_query)[:3, 3]))
+        n0, n1 = self._ids.index(match_id), self._ids.index(query_id)
+        driven = sum(float(np.linalg.norm(self._odom[self._ids[n]][:3, 3])) for n in range(n0 + 1, n1 + 1))
+        limit = self.cfg.max_drift_fraction * driven + self.cfg.max_drift_floor_m
+        if jump <= limit:
+            return ""
+        return (f"the loop would move the keyframe by {jump:.1f} m after {driven:.0f} m of odometry (at most "
+                f"{limit:.1f} m of drift expected): a repeated place, not a revisit")
 
     def _correct(self, edge: LoopEdge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ids, before = self.poses()

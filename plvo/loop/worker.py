@@ -4,7 +4,13 @@ Each keyframe is turned into a `LoopKeyframe` (features, depth priors as camera-
 thinned scan) and run through `LoopCloser`: BoW query, verification, and on an accepted loop a pose-graph
 correction. The corrected keyframe poses are written into the shared map; every landmark moves rigidly with the
 keyframe that created it, and keyframes the tracker made meanwhile move with the newest corrected one. The
-tracker follows through its re-anchoring on the last keyframe.
+tracker follows through its re-anchoring on the last keyframe. After a correction a GraphResult with the corrected
+keyframe trajectory, its odometry chain and the loop edges goes to the recorders; timings: loop_bow, loop_query,
+loop_verify, loop_correct (pose graph), loop_apply (map update), loop (all), seconds, one entry a keyframe.
+
+With `backend.concurrent` the back end may be optimising a window read before the correction and write it back
+afterwards (absolute poses), undoing the correction on that window; inline workers (what the evaluation
+and the tests use) do not have this race.
 
 A global bundle adjustment after the pose graph (ORB-SLAM2's last step) is not run: the pose graph plus the
 rigid landmark update already makes the map consistent, and the local bundle adjustment refines it as the
@@ -22,7 +28,7 @@ from plvo.config import SystemConfig
 from plvo.geometry import se3
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import LoopKeyframe
-from plvo.results import LoopResult, MetricsResult
+from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, GraphResult, LoopResult, MetricsResult
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration
@@ -54,11 +60,13 @@ class LoopWorker(KeyframeWorker):
             self.closer.update_poses(known, snap.keyframe_T_world_cam[: kf.kf_id])
         lk = self._loop_keyframe(kf, snap.keyframe_T_world_cam[kf.kf_id])
         outcome = self.closer.on_keyframe(lk)
+        t1 = time.perf_counter()
         if outcome.accepted is not None and outcome.poses_after is not None:
             self._apply(outcome)
+        # loop_correct: the closer's pose graph; loop_apply: writing it into the map (under the map lock).
         self.add_timing({"loop_bow": 1e-3 * outcome.bow_ms, "loop_query": 1e-3 * outcome.query_ms,
                          "loop_verify": 1e-3 * outcome.verify_ms, "loop_correct": 1e-3 * outcome.correct_ms,
-                         "loop": time.perf_counter() - t0})
+                         "loop_apply": time.perf_counter() - t1, "loop": time.perf_counter() - t0})
         self.emit(kf.frame_index, *self._results(kf.frame_index, outcome))
         return outcome
 
@@ -105,10 +113,22 @@ class LoopWorker(KeyframeWorker):
         if not outcome.verifications and len(det.candidates):
             out.append(LoopResult(frame_index, outcome.kf_id, int(det.candidates[0]), False,
                                   float(det.normalised[0]), 0, None, "; ".join(outcome.rejections)))
+        if outcome.accepted is not None:
+            out.append(self._graph(frame_index))
         out.append(MetricsResult(frame_index, {"loop_candidates": float(len(det.candidates)),
                                                "loop_verified": float(len(outcome.verifications)),
                                                "loop_closed": float(outcome.accepted is not None)}))
         return out
+
+    def _graph(self, frame_index: int) -> GraphResult:
+        """The corrected keyframe trajectory with its odometry chain and every loop edge (for the viewers)."""
+        snap = self.map.snapshot()
+        n = len(snap.keyframe_ids)
+        chain = np.c_[np.arange(n - 1), np.arange(1, n)]
+        loops = np.array(self.loop_edges, int).reshape(-1, 2)
+        kinds = np.r_[np.full(len(chain), EDGE_ODOMETRY), np.full(len(loops), EDGE_LOOP)].astype(int)
+        return GraphResult(frame_index, snap.keyframe_ids, snap.keyframe_T_world_cam, np.r_[chain, loops],
+                           kinds, np.full(len(kinds), np.nan))
 
 
 def _move(points: np.ndarray, first_kf: np.ndarray, corr: np.ndarray, row: dict[int, int]) -> np.ndarray:

@@ -1,0 +1,124 @@
+"""Loop closure inside the whole System (issue 9): run_dataset with inline workers over a short synthetic loop.
+
+The sequence (seed 177, 150 frames at 15 m/s) circles the town's smallest block near the start, a 180 m lap, then
+drives 44 m along the first street again. The System runs over its first RUN_FRAMES frames, where it closes the
+revisit twice (frames 118 and 133; 118 alone is marginal: 31 of the 30 needed inliers). Cost: the generation of
+the 150 frames plus about 70 s of CPU for the run.
+
+Inline workers (`backend.concurrent = False`) make the run deterministic and identical to a run without the loop
+closer until the first accepted loop. So the keyframe trajectory the back end reports just before the correction
+is what the System without loop closure has at that frame, and the frames before the revisit are a run over a
+sequence that never revisits. (Against a second run with `loop.enabled = False` over all 150 frames: end-point
+error 0.48 m -> 0.08 m, ATE 0.17 m -> 0.10 m, measured for the issue-9 report.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plvo.config import BackendConfig, LoopConfig, SystemConfig
+from plvo.geometry import se3
+from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, TrackingResult
+
+pytestmark = pytest.mark.slow
+
+FRAMES, SEED, SPEED = 150, 177, 15.0
+RUN_FRAMES = 136
+REVISIT_M, REVISIT_DEG = 5.0, 30.0  # a keyframe revisits an earlier one this close (and more than min gap back)
+
+
+class _Collect:
+    """Recorder keeping what the tests look at."""
+
+    def __init__(self) -> None:
+        self.loops: list[LoopResult] = []
+        self.kf_frame: dict[int, int] = {}
+        self.lost: list[int] = []
+        self.graphs: list[GraphResult] = []
+        self.tracked: dict[int, np.ndarray] = {}  # frame -> the tracker's pose when it was tracked
+
+    def on_run_start(self, info) -> None:
+        pass
+
+    def on_frame(self, frame) -> None:
+        pass
+
+    def on_stage(self, frame_index: int, result) -> None:
+        if isinstance(result, LoopResult):
+            self.loops.append(result)
+        elif isinstance(result, KeyframeResult):
+            self.kf_frame[result.keyframe_id] = result.frame_index
+        elif isinstance(result, GraphResult):
+            self.graphs.append(result)
+        elif isinstance(result, TrackingResult):
+            self.tracked[frame_index] = np.asarray(result.T_world_cam)
+            if not result.ok:
+                self.lost.append(frame_index)
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture(scope="module")
+def run(synth_sequence_factory):
+    from plvo.data.kitti import KittiOdometry
+    from plvo.system import run_dataset
+
+    root = synth_sequence_factory(FRAMES, seed=SEED, speed_mps=SPEED, loop=True)
+    ds = KittiOdometry(root, "00", frames=slice(0, RUN_FRAMES))
+    rec = _Collect()
+    cfg = SystemConfig(backend=BackendConfig(concurrent=False), loop=LoopConfig(enabled=True))
+    return ds, run_dataset(ds, cfg, rec), rec
+
+
+def _revisits(gt: np.ndarray, kf_frame: dict[int, int], gap: int) -> dict[int, set[int]]:
+    """Keyframe id -> ids of keyframes more than `gap` back that it revisits (ground truth)."""
+    out: dict[int, set[int]] = {}
+    for q, fq in kf_frame.items():
+        for m, fm in kf_frame.items():
+            if m < q - gap:
+                dT = se3.inv(gt[fm]) @ gt[fq]
+                if np.linalg.norm(dT[:3, 3]) < REVISIT_M and np.degrees(se3.rotation_angle(dT)) < REVISIT_DEG:
+                    out.setdefault(q, set()).add(m)
+    return out
+
+
+def test_loop_is_closed_and_end_point_error_falls(run):
+    ds, out, rec = run
+    gt = ds.gt_T_world_cam
+    accepted = [r for r in rec.loops if r.accepted]
+    assert accepted, "the revisit of the first street was not closed"
+    revisits = _revisits(gt, rec.kf_frame, LoopConfig().min_keyframe_gap)
+    for r in accepted:  # precision: every accepted loop joins keyframes that really are at the same place
+        assert r.match_keyframe in revisits.get(r.query_keyframe, set()), (r.query_keyframe, r.match_keyframe)
+    # At the first loop: the back end's keyframe trajectory just before the correction (what the System without
+    # loop closure has then) and the loop closer's corrected one; their newest keyframe is the end point.
+    first = accepted[0]
+    graphs = [g for g in rec.graphs if g.frame_index == first.frame_index]
+    assert len(graphs) == 2 and graphs[1].edge_kind.max() == EDGE_LOOP  # back end, then the loop correction
+    fq = rec.kf_frame[first.query_keyframe]
+    before, after = (float(np.linalg.norm(g.T_world_cam[first.query_keyframe, :3, 3] - gt[fq, :3, 3]))
+                     for g in graphs)
+    assert after < before / 10.0, (before, after)  # measured 0.22 m -> 0.002 m
+    # The map holds the correction, the System's poses carry it and the tracker went on from the corrected map
+    # without losing track: the frames after the loop stay as close to the truth as after the correction.
+    assert not rec.lost, rec.lost
+    err = np.linalg.norm(out.poses[:, :3, 3] - gt[:, :3, 3], axis=1)
+    # Left out: the loop keyframes' own frames. System.step stores a keyframe frame's pose relative to its keyframe
+    # *after* the inline workers moved that keyframe, so such a frame keeps its uncorrected pose (a System issue,
+    # reported in issue 9; it also drops the first bundle adjustment of every keyframe frame).
+    later = np.setdiff1d(np.arange(fq + 1, len(err)), [r.frame_index for r in accepted])
+    assert err[later].max() < 0.1, err[later].max()  # measured 0.045 m (0.017 m at the last frame)
+
+
+def test_no_loop_before_the_revisit(run):
+    ds, out, rec = run
+    revisits = _revisits(ds.gt_T_world_cam, rec.kf_frame, LoopConfig().min_keyframe_gap)
+    first_revisit = min(rec.kf_frame[q] for q in revisits)
+    before = [r for r in rec.loops if r.frame_index < first_revisit]
+    assert not [r for r in before if r.accepted], [(r.query_keyframe, r.match_keyframe) for r in before]
+    # The closer was really asked (one query a keyframe), and candidates reached geometric verification before
+    # the revisit: "no loop" there is the verification's verdict, not an idle detector.
+    assert len(out.timings["loop_query"]) == out.n_keyframes
+    assert len(before) >= 5 and all(r.reason for r in before)
