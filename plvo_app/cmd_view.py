@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def view(path: Path, port: int = 8080, serve: bool = True) -> int:
     """Load `path` into the viser viewer and serve it until Ctrl-C (serve=False: load, report and return)."""
-    from plvo_app.viser_viewer import ViserViewer, load_rrd
+    from plvo_app.viser_viewer import ViserViewer, load_rrd, serve_until_interrupted
 
     store = load_rrd(path)
     if not store.frames:
@@ -27,15 +27,7 @@ def view(path: Path, port: int = 8080, serve: bool = True) -> int:
     print(f"{path}: {len(store.frames)} frames ({store.frames[0]}..{store.frames[-1]})", file=sys.stderr)
     if not serve:
         return 0
-    viewer = ViserViewer(store, port=port)
-    print(f"viser viewer: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.close()
+    serve_until_interrupted(ViserViewer(store, port=port), "viser viewer")
     return 0
 
 

@@ -179,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
         extra={"config_toml": config_to_toml(cfg)})
     recorders, viewer = [RerunRecorder(outs.rrd)], None
     if not args.no_serve:
-        from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
+        from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer, serve_until_interrupted
 
         viewer = ViserViewer(SceneStore(), port=args.port, live=True)
         recorders.append(ViserRecorder(viewer))
@@ -207,16 +207,5 @@ def run(args: argparse.Namespace) -> int:
             viewer.close()
         return 130
     if viewer is not None:
-        _serve_until_interrupted(viewer)
+        serve_until_interrupted(viewer, "serving the run")
     return 0
-
-
-def _serve_until_interrupted(viewer) -> None:
-    print(f"serving the run at http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.close()

@@ -361,3 +361,17 @@ class ViserRecorder:
 
     def close(self) -> None:
         self.viewer.refresh()
+
+
+def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:
+    """Keep the viewer up until Ctrl-C (plvo-viz after a run, plvo view), then close it."""
+    import sys
+
+    print(f"{what}: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()

@@ -28,7 +28,7 @@ from plvo.backend.relpose import inv_batch, relpose_block
 from plvo.config import BackendConfig
 from plvo.geometry import se3
 from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch
-from plvo.geometry.lines import _hat_batch, orth_to_plucker, orth_update, plucker_from_points, plucker_to_orth
+from plvo.geometry.lines import hat_batch, orth_to_plucker, orth_update, plucker_from_points, plucker_to_orth
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def point_block(
     dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
     r[~stereo, 2] = 0.0
     dproj[~stereo, 2] = 0.0
-    dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -_hat_batch(Xc)], axis=2)
+    dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
     return r / sigma, dproj @ dXc_dxi / sigma, dproj @ R / sigma
 
 

@@ -31,7 +31,7 @@ from plvo.backend.problem import BAProblem, BAResult
 from plvo.config import BackendConfig
 from plvo.geometry import se3
 from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch, orth_plucker_jacobian
-from plvo.geometry.lines import _cross, _hat_batch, orth_to_plucker, orth_update, plucker_from_points, plucker_to_orth
+from plvo.geometry.lines import cross3, hat_batch, orth_to_plucker, orth_update, plucker_from_points, plucker_to_orth
 
 log = logging.getLogger(__name__)
 
@@ -70,21 +70,21 @@ def prior_distance_and_jacobians(
     R, t = T_cam_world[:, :3, :3], T_cam_world[:, :3, 3]
     Lw = orth_to_plucker(U, W)
     d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
-    m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + _cross(t, d_c)
+    m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + cross3(t, d_c)
     nd = np.linalg.norm(d_c, axis=1)
     dL = orth_plucker_jacobian(U, W)
-    dmc_dl = R @ dL[:, :3] + _hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
+    dmc_dl = R @ dL[:, :3] + hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
     ddc_dl = R @ dL[:, 3:]
     # Left pose perturbation: m_c += rho x d_c + phi x m_c, d_c += phi x d_c.
     zero = np.zeros((len(R), 3, 3))
-    dmc_dxi = np.concatenate([-_hat_batch(d_c), -_hat_batch(m_c)], axis=2)
-    ddc_dxi = np.concatenate([zero, -_hat_batch(d_c)], axis=2)
+    dmc_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)
+    ddc_dxi = np.concatenate([zero, -hat_batch(d_c)], axis=2)
     dist = np.zeros(len(R))
     J_pose = np.zeros((len(R), 6))
     J_line = np.zeros((len(R), 4))
     for k in range(2):
         X = priors_cam[:, k]
-        e = _cross(X, d_c) - m_c  # (N,3); distance = |e| / |d_c|
+        e = cross3(X, d_c) - m_c  # (N,3); distance = |e| / |d_c|
         ne = np.linalg.norm(e, axis=1)
         dk = ne / nd
         dist += 0.5 * dk
@@ -93,7 +93,7 @@ def prior_distance_and_jacobians(
         g_e[ne == 0] = 0.0
         g_d = -(dk / nd**2)[:, None] * d_c  # d dist / d d_c through 1/|d_c|
         # e = X x d_c - m_c: de/dd_c = [X]x, de/dm_c = -I
-        g_dc = np.einsum("ni,nij->nj", g_e, _hat_batch(X)) + g_d
+        g_dc = np.einsum("ni,nij->nj", g_e, hat_batch(X)) + g_d
         g_mc = -g_e
         J_pose += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dxi) + np.einsum("ni,nij->nj", g_dc, ddc_dxi))
         J_line += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dl) + np.einsum("ni,nij->nj", g_dc, ddc_dl))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from plvo.geometry import se3
-from plvo.geometry.lines import _hat_batch
+from plvo.geometry.lines import hat_batch
 
 
 def inv_batch(T: np.ndarray) -> np.ndarray:
@@ -37,7 +37,7 @@ def log_batch(T: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, theta)
     coef = np.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
                     (1.0 - half * np.cos(half) / np.where(small, 1.0, np.sin(half))) / safe**2)
-    W = _hat_batch(phi)
+    W = hat_batch(phi)
     V_inv = np.eye(3) - 0.5 * W + coef[:, None, None] * (W @ W)
     out = np.concatenate([np.einsum("nij,nj->ni", V_inv, T[:, :3, 3]), phi], axis=1)
     for k in np.flatnonzero(np.pi - theta < 1e-2):  # the antisymmetric part vanishes near pi
@@ -51,15 +51,15 @@ def adjoint_batch(T: np.ndarray) -> np.ndarray:
     A = np.zeros((len(T), 6, 6))
     A[:, :3, :3] = R
     A[:, 3:, 3:] = R
-    A[:, :3, 3:] = _hat_batch(T[:, :3, 3]) @ R
+    A[:, :3, 3:] = hat_batch(T[:, :3, 3]) @ R
     return A
 
 
 def _ad(xi: np.ndarray) -> np.ndarray:
     """(N,6) (rho, phi) -> (N,6,6) se(3) adjoint ad(xi) = [[phi^, rho^], [0, phi^]]."""
     A = np.zeros((len(xi), 6, 6))
-    A[:, :3, :3] = A[:, 3:, 3:] = _hat_batch(xi[:, 3:])
-    A[:, :3, 3:] = _hat_batch(xi[:, :3])
+    A[:, :3, :3] = A[:, 3:, 3:] = hat_batch(xi[:, 3:])
+    A[:, :3, 3:] = hat_batch(xi[:, :3])
     return A
 
 

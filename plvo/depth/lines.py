@@ -20,7 +20,7 @@ import numpy as np
 
 from plvo.config import DepthConfig
 from plvo.depth.projection import ProjectedScan, query_segments, to_padded
-from plvo.geometry.lines import line_projection_matrix, orth_to_plucker, orth_update, plucker_to_orth
+from plvo.geometry.lines import cross3, line_projection_matrix, orth_to_plucker, orth_update, plucker_to_orth
 from plvo.types import (
     DEPTH_BAD_FIT,
     DEPTH_GRAZING_RAY,
@@ -165,18 +165,6 @@ def _init_depths(z, tt, fg, cfg: DepthConfig, n_iter: int = 3):
         return 1.0 / a, 1.0 / (a + b), sel
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(...,3) x (...,3) -> (...,3), broadcasting; spelled out, np.cross is slow on small batches."""
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
-
-
 def _end_rays(K: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """(M,4) segments -> (M,2,3) rays with z = 1 through the two ends."""
     ends = seg.reshape(-1, 2, 2)
@@ -188,7 +176,7 @@ def _end_rays(K: np.ndarray, seg: np.ndarray) -> np.ndarray:
 def _plucker(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     d = q - p
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    return np.concatenate([_cross(p, d), d], axis=1)
+    return np.concatenate([cross3(p, d), d], axis=1)
 
 
 def _distances(pts: np.ndarray, L: np.ndarray) -> np.ndarray:
@@ -216,7 +204,7 @@ def _reprojection(KL: np.ndarray, ends_h: np.ndarray, L: np.ndarray) -> np.ndarr
 
 def _to_camera(L_loc: np.ndarray, c: np.ndarray) -> np.ndarray:
     """(M,6) lines in frames translated to c (M,3) -> (M,6) camera-frame lines: m = m_loc + c x d."""
-    return np.concatenate([L_loc[:, :3] + _cross(c, L_loc[:, 3:]), L_loc[:, 3:]], axis=1)
+    return np.concatenate([L_loc[:, :3] + cross3(c, L_loc[:, 3:]), L_loc[:, 3:]], axis=1)
 
 
 def _hat_rows(v: np.ndarray, out: np.ndarray, sign: float = 1.0) -> None:
@@ -378,7 +366,7 @@ def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np
 def _trim(L: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(M,6) lines, (M,2,3) end rays -> endpoints (M,2,3) on the line nearest each ray, min sin(ray, line) (M,)."""
     d = L[:, 3:] / np.linalg.norm(L[:, 3:], axis=1, keepdims=True)
-    p0 = _cross(L[:, 3:], L[:, :3]) / np.sum(L[:, 3:] * L[:, 3:], axis=1, keepdims=True)
+    p0 = cross3(L[:, 3:], L[:, :3]) / np.sum(L[:, 3:] * L[:, 3:], axis=1, keepdims=True)
     r = rays / np.linalg.norm(rays, axis=2, keepdims=True)
     b = np.einsum("mki,mi->mk", r, d)
     e = np.einsum("mki,mi->mk", r, p0)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from plvo.errors import PlvoError
-from plvo.geometry.lines import _cross, _hat_batch, line_projection_matrix, orth_to_plucker
+from plvo.geometry.lines import cross3, hat_batch, line_projection_matrix, orth_to_plucker
 
 
 def orth_plucker_jacobian(U: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -53,7 +53,7 @@ def line_residuals_and_jacobians_batch(
 
     L_w = orth_to_plucker(U, W)
     d_c = np.einsum("nij,nj->ni", R, L_w[:, 3:])
-    m_c = np.einsum("nij,nj->ni", R, L_w[:, :3]) + _cross(t, d_c)
+    m_c = np.einsum("nij,nj->ni", R, L_w[:, :3]) + cross3(t, d_c)
     l = m_c @ K_L.T
 
     ends = np.stack([seg[:, 0:2], seg[:, 2:4]], axis=1)  # (N,2,2)
@@ -66,11 +66,11 @@ def line_residuals_and_jacobians_batch(
     dr_dm = dr_dl @ K_L  # (N,2,3)
 
     # m_c(xi) = m_c + rho x d_c + phi x m_c to first order.
-    dm_dxi = np.concatenate([-_hat_batch(d_c), -_hat_batch(m_c)], axis=2)  # (N,3,6)
+    dm_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)  # (N,3,6)
     J_pose = dr_dm @ dm_dxi
 
     dL = orth_plucker_jacobian(U, W)  # (N,6,4)
-    dmc_dline = R @ dL[:, :3, :] + _hat_batch(t) @ R @ dL[:, 3:, :]
+    dmc_dline = R @ dL[:, :3, :] + hat_batch(t) @ R @ dL[:, 3:, :]
     J_line = dr_dm @ dmc_dline
     return r, J_pose, J_line
 
@@ -102,10 +102,10 @@ def point_line_distance_and_jacobian(
     dL = orth_plucker_jacobian(U, W)
     dm, dd = dL[:3], dL[3:]
     nd = np.linalg.norm(d)
-    e = _cross(pts, np.broadcast_to(d, pts.shape)) - m  # (N,3)
+    e = cross3(pts, np.broadcast_to(d, pts.shape)) - m  # (N,3)
     ne = np.linalg.norm(e, axis=1)
     dist = ne / nd
-    de = _hat_batch(pts) @ dd - dm  # (N,3,4)
+    de = hat_batch(pts) @ dd - dm  # (N,3,4)
     safe = np.where(ne > 0, ne, 1.0)
     J = np.einsum("ni,nij->nj", e, de) / (safe * nd)[:, None] - (dist / nd**2)[:, None] * (d @ dd)[None, :]
     J[ne == 0] = 0.0

@@ -32,7 +32,7 @@ def _as_lines(L: np.ndarray, name: str = "L") -> tuple[np.ndarray, bool]:
     return arr, False
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     # np.cross on (N,3) is slow-ish and warns on 2-vectors in numpy 2; spell it out.
     return np.stack(
         [
@@ -44,7 +44,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def _hat_batch(w: np.ndarray) -> np.ndarray:
+def hat_batch(w: np.ndarray) -> np.ndarray:
     """(N,3) -> (N,3,3) skew matrices."""
     out = np.zeros(w.shape[:-1] + (3, 3))
     out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
@@ -61,7 +61,7 @@ def _so3_exp_batch(phi: np.ndarray) -> np.ndarray:
     t2 = theta * theta
     a = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, np.sin(t) / t)
     b = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - np.cos(t)) / (t * t))
-    W = _hat_batch(phi)
+    W = hat_batch(phi)
     return np.eye(3) + a[..., None, None] * W + b[..., None, None] * (W @ W)
 
 
@@ -79,7 +79,7 @@ def plucker_from_points(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     if np.any(bad):
         raise PlvoError(f"plucker_from_points: p and q coincide at rows {np.flatnonzero(bad)[:10].tolist()}")
     d = d / n[:, None]
-    L = np.concatenate([_cross(p2, d), d], axis=1)
+    L = np.concatenate([cross3(p2, d), d], axis=1)
     return L[0] if single else L
 
 
@@ -94,7 +94,7 @@ def closest_point_to_origin(L: np.ndarray) -> np.ndarray:
     """(6,) -> (3,) or (N,6) -> (N,3): the point of the line nearest the frame's origin, (d x m) / |d|^2."""
     arr, single = _as_lines(L)
     m, d = arr[:, :3], arr[:, 3:]
-    p = _cross(d, m) / np.sum(d * d, axis=1, keepdims=True)
+    p = cross3(d, m) / np.sum(d * d, axis=1, keepdims=True)
     return p[0] if single else p
 
 
@@ -124,11 +124,11 @@ def plucker_to_orth(L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if np.any(through_origin):
         # Any unit vector perpendicular to d: cross with the world axis least aligned with it.
         axis = np.eye(3)[np.argmin(np.abs(u2[through_origin]), axis=1)]
-        m_perp[through_origin] = _cross(u2[through_origin], axis)
+        m_perp[through_origin] = cross3(u2[through_origin], axis)
         nmp[through_origin] = np.linalg.norm(m_perp[through_origin], axis=1)
         nm = np.where(through_origin, 0.0, nm)
     u1 = m_perp / nmp[:, None]
-    U = np.stack([u1, u2, _cross(u1, u2)], axis=2)
+    U = np.stack([u1, u2, cross3(u1, u2)], axis=2)
     s = np.hypot(nm, nd)
     w1, w2 = nm / s, nd / s
     W = np.stack([np.stack([w1, -w2], axis=1), np.stack([w2, w1], axis=1)], axis=1)
@@ -159,7 +159,7 @@ def transform_line(T_a_b: np.ndarray, L_b: np.ndarray) -> np.ndarray:
     T = np.asarray(T_a_b, dtype=float)
     R, t = T[..., :3, :3], T[..., :3, 3]
     d = np.einsum("...ij,...j->...i", R, arr[:, 3:])
-    m = np.einsum("...ij,...j->...i", R, arr[:, :3]) + _cross(np.broadcast_to(t, d.shape), d)
+    m = np.einsum("...ij,...j->...i", R, arr[:, :3]) + cross3(np.broadcast_to(t, d.shape), d)
     out = np.concatenate([m, d], axis=-1)
     return out[0] if single and T.ndim == 2 else out
 
@@ -202,7 +202,7 @@ def point_line_distance(points: np.ndarray, L: np.ndarray) -> np.ndarray:
     pts = np.atleast_2d(np.asarray(points, dtype=float))
     L = np.asarray(L, dtype=float).reshape(6)
     m, d = L[:3], L[3:]
-    e = _cross(pts, np.broadcast_to(d, pts.shape)) - m
+    e = cross3(pts, np.broadcast_to(d, pts.shape)) - m
     return np.linalg.norm(e, axis=1) / np.linalg.norm(d)
 
 
@@ -224,7 +224,7 @@ def trim_endpoints(K: np.ndarray, L_cam: np.ndarray, segment: np.ndarray) -> np.
     b = rays @ d
     e = rays @ p0
     # |r x d|^2 = 1 - b^2, but without the cancellation that hides near-parallel rays.
-    denom = np.sum(_cross(rays, np.broadcast_to(d, rays.shape)) ** 2, axis=1)
+    denom = np.sum(cross3(rays, np.broadcast_to(d, rays.shape)) ** 2, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (b * e - (d @ p0)) / denom
     t = np.where(denom > 1e-18, t, np.nan)
