@@ -17,7 +17,7 @@ from pathlib import Path
 
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import PlvoError, TrajectoryError
-from plvo.eval.kitti_metric import SHORT_LENGTHS, RelativeError, SequenceEvaluation, evaluate_sequence
+from plvo.eval.kitti_metric import SHORT_LENGTHS, RelativeError, SequenceEvaluation, evaluate_sequence, evaluation_json
 
 
 def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,39 +51,9 @@ def _fmt(value: float, spec: str) -> str:
     return f"{'-':>{width}}" if math.isnan(value) else format(value, spec)
 
 
-def _json_value(value: float) -> float | None:
-    return None if math.isnan(value) else value
-
-
-def _per_length(rel: RelativeError) -> dict[str, dict]:
-    return {
-        f"{e.length_m:g}": {
-            "n_segments": e.n_segments,
-            "t_err_pct": _json_value(e.t_err_pct),
-            "r_err_deg_per_m": _json_value(e.r_err_deg_per_m),
-        }
-        for e in rel.per_length
-    }
-
-
 def metric_json(ev: SequenceEvaluation, gt: Path, est: Path) -> dict:
-    """The --json object: devkit figures at the top level, `segments` and `short` keyed by length in metres."""
-    return {
-        "gt": str(gt),
-        "est": str(est),
-        "n_frames": ev.n_frames,
-        "path_length_m": ev.path_length_m,
-        "t_err_pct": _json_value(ev.kitti.t_err_pct),
-        "r_err_deg_per_m": _json_value(ev.kitti.r_err_deg_per_m),
-        "n_segments": ev.kitti.n_segments,
-        "ate_m": ev.ate_se3.rmse_m,
-        "ate_sim3_m": ev.ate_sim3.rmse_m,
-        "sim3_scale": ev.ate_sim3.scale,
-        "segments": _per_length(ev.kitti),
-        "short": _per_length(ev.short),
-        "short_t_err_pct": _json_value(ev.short.t_err_pct),
-        "short_r_err_deg_per_m": _json_value(ev.short.r_err_deg_per_m),
-    }
+    """The --json object: the files, then the figures (plvo.eval.kitti_metric.evaluation_json)."""
+    return {"gt": str(gt), "est": str(est), **evaluation_json(ev)}
 
 
 def _table_rows(rel: RelativeError) -> list[str]:

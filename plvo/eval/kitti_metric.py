@@ -303,3 +303,37 @@ def evaluate(
         kitti=summarize(_concat(s.kitti.segments for s in sequences), DEVKIT_LENGTHS),
         short=summarize(_concat(s.short.segments for s in sequences), tuple(short_lengths)),
     )
+
+
+def _json_number(value: float) -> float | None:
+    return None if not np.isfinite(value) else float(value)
+
+
+def _per_length_json(rel: RelativeError) -> dict[str, dict]:
+    return {
+        f"{e.length_m:g}": {
+            "n_segments": e.n_segments,
+            "t_err_pct": _json_number(e.t_err_pct),
+            "r_err_deg_per_m": _json_number(e.r_err_deg_per_m),
+        }
+        for e in rel.per_length
+    }
+
+
+def evaluation_json(ev: "SequenceEvaluation") -> dict:
+    """The figures of `plvo eval metric --json` (NaN as null): devkit figures at the top level, `segments` and
+    `short` keyed by length in metres."""
+    return {
+        "n_frames": ev.n_frames,
+        "path_length_m": ev.path_length_m,
+        "t_err_pct": _json_number(ev.kitti.t_err_pct),
+        "r_err_deg_per_m": _json_number(ev.kitti.r_err_deg_per_m),
+        "n_segments": ev.kitti.n_segments,
+        "ate_m": ev.ate_se3.rmse_m,
+        "ate_sim3_m": ev.ate_sim3.rmse_m,
+        "sim3_scale": ev.ate_sim3.scale,
+        "segments": _per_length_json(ev.kitti),
+        "short": _per_length_json(ev.short),
+        "short_t_err_pct": _json_number(ev.short.t_err_pct),
+        "short_r_err_deg_per_m": _json_number(ev.short.r_err_deg_per_m),
+    }

@@ -27,12 +27,12 @@ import numpy as np
 
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_toml, load_config, merge, with_ablation
-from plvo.data.dataset import Dataset, iter_frames
+from plvo.data.dataset import Dataset
 from plvo.data.registry import open_dataset, parse_frames
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
 from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions, run_kiss
-from plvo.eval.kitti_metric import RelativeError, SequenceEvaluation, evaluate_sequence
+from plvo.eval.kitti_metric import SequenceEvaluation, evaluate_sequence, evaluation_json
 
 log = logging.getLogger(__name__)
 
@@ -142,32 +142,11 @@ def plvo_config(spec: RunSpec):
 
 
 def run_pipeline(dataset: Dataset, config) -> MethodOutput:
-    """Dataset + SystemConfig -> plvo's poses (N,4,4) T_world_cam; through plvo.system.run_dataset when it exists.
+    """Dataset + SystemConfig -> plvo's cam0 poses (N,4,4) T_world_cam0 and per-stage timings."""
+    from plvo.system import run_dataset
 
-    Adapter: until run_dataset exists, a System is stepped over the frames and its `poses` dict is read; a
-    checkout whose System has no tracker cannot estimate poses and raises PlvoError.
-    """
-    from plvo import system as plvo_system
-
-    run_dataset = getattr(plvo_system, "run_dataset", None)
-    if run_dataset is not None:
-        out = run_dataset(dataset, config)
-        return MethodOutput(np.asarray(out.poses, dtype=np.float64), dict(getattr(out, "timings", {}) or {}))
-    sys_ = plvo_system.System(config)
-    if not sys_.has_odometry:
-        raise PlvoError(
-            f"sequence {dataset.sequence}: the plvo pipeline estimates no poses in this checkout "
-            "(plvo.system has no run_dataset and its default stages have no tracker)"
-        )
-    try:
-        sys_.run(iter_frames(dataset))
-    finally:
-        sys_.close()
-    missing = [i for i in dataset.frame_indices if i not in sys_.poses]
-    if missing:
-        raise PlvoError(f"sequence {dataset.sequence}: no pose estimated for frame {missing[0]} ({len(missing)} missing)")
-    poses = np.stack([sys_.poses[i] for i in dataset.frame_indices])
-    return MethodOutput(poses, dict(sys_.timings))
+    out = run_dataset(dataset, config)
+    return MethodOutput(np.asarray(out.poses, dtype=np.float64), dict(out.timings))
 
 
 def _method_plvo(dataset: Dataset, spec: RunSpec) -> MethodOutput:
@@ -186,39 +165,10 @@ METHODS: dict[str, Callable[[Dataset, RunSpec], MethodOutput]] = {"plvo": _metho
 # ---------------------------------------------------------------- one task
 
 
-def _finite(value: float) -> float | None:
-    return None if not np.isfinite(value) else float(value)
-
-
-def _per_length(rel: RelativeError) -> dict[str, dict[str, Any]]:
-    return {
-        f"{e.length_m:g}": {
-            "n_segments": e.n_segments,
-            "t_err_pct": _finite(e.t_err_pct),
-            "r_err_deg_per_m": _finite(e.r_err_deg_per_m),
-        }
-        for e in rel.per_length
-    }
-
-
 def metrics_dict(ev: SequenceEvaluation, gt: np.ndarray, est: np.ndarray) -> dict[str, Any]:
     """A sequence's figures with the keys of `plvo eval metric --json` (NaN as null), plus final_drift_m: the
     distance (m) between the last estimated and ground-truth positions, est anchored at the first gt pose."""
-    return {
-        "n_frames": ev.n_frames,
-        "path_length_m": ev.path_length_m,
-        "t_err_pct": _finite(ev.kitti.t_err_pct),
-        "r_err_deg_per_m": _finite(ev.kitti.r_err_deg_per_m),
-        "n_segments": ev.kitti.n_segments,
-        "ate_m": ev.ate_se3.rmse_m,
-        "ate_sim3_m": ev.ate_sim3.rmse_m,
-        "sim3_scale": ev.ate_sim3.scale,
-        "segments": _per_length(ev.kitti),
-        "short": _per_length(ev.short),
-        "short_t_err_pct": _finite(ev.short.t_err_pct),
-        "short_r_err_deg_per_m": _finite(ev.short.r_err_deg_per_m),
-        "final_drift_m": float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3])),
-    }
+    return {**evaluation_json(ev), "final_drift_m": float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))}
 
 
 def anchor(est: np.ndarray, gt_first: np.ndarray) -> np.ndarray:
