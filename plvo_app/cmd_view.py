@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 from plvo.errors import RecordingError
+from plvo_app.scene_common import wait_for_interrupt
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,11 +44,7 @@ def serve_rerun_web(path: Path, web_port: int) -> int:
     rec.log_file_from_path(path)
     rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
     print(f"Rerun web viewer: http://127.0.0.1:{web_port}/?url={uri} - Ctrl-C to quit", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
+    wait_for_interrupt()
     return 0
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import bisect
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -221,3 +222,12 @@ def _pose_from_row(row: dict[str, Any]) -> np.ndarray:
     if row.get("Transform3D:translation"):
         T[:3, 3] = np.asarray(row["Transform3D:translation"][0], float)
     return T
+
+
+def wait_for_interrupt() -> None:
+    """Block until Ctrl-C: the servers run in background threads and stay up for inspection meanwhile."""
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass

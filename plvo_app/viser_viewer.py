@@ -22,7 +22,7 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.types import Frame
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   load_rrd, thin, zeta_colors)
+                                   load_rrd, thin, wait_for_interrupt, zeta_colors)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
@@ -369,9 +369,6 @@ def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:
 
     print(f"{what}: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
     try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
+        wait_for_interrupt()
     finally:
         viewer.close()

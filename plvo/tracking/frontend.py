@@ -222,18 +222,8 @@ class Frontend:
 
     def _correspondences(self, prev: _FrameState, feats: FeatureSet, pm: Matches, lm: Matches) -> dict:
         """3D-2D matches from the 2D-2D matches whose previous feature is tracked to a live landmark."""
-        p_lm = prev.assoc.point_landmark[pm.pairs[:, 0]] if len(pm) else np.zeros(0, np.int64)
-        p_cur = pm.pairs[:, 1] if len(pm) else np.zeros(0, np.int64)
-        keep = p_lm >= 0
-        p_lm, p_cur = p_lm[keep], p_cur[keep]
-        alive = self.map.point_alive(p_lm)
-        p_lm, p_cur = p_lm[alive], p_cur[alive]
-        l_lm = prev.assoc.line_landmark[lm.pairs[:, 0]] if len(lm) else np.zeros(0, np.int64)
-        l_cur = lm.pairs[:, 1] if len(lm) else np.zeros(0, np.int64)
-        keep = l_lm >= 0
-        l_lm, l_cur = l_lm[keep], l_cur[keep]
-        alive = self.map.line_alive(l_lm)
-        l_lm, l_cur = l_lm[alive], l_cur[alive]
+        p_lm, p_cur = _tracked(prev.assoc.point_landmark, pm, self.map.point_alive)
+        l_lm, l_cur = _tracked(prev.assoc.line_landmark, lm, self.map.line_alive)
         return {
             "p_lm": p_lm, "p_cur": p_cur, "pts": self.map.point_positions(p_lm),
             "uv": feats.keypoints[p_cur].astype(float).reshape(-1, 2),
@@ -429,6 +419,16 @@ class Frontend:
             association=FrameAssociation(state.assoc.point_landmark.copy(), state.assoc.line_landmark.copy()),
             features=state.features, keyframe=keyframe, timings=dict(timings),
         )
+
+
+def _tracked(prev_landmark: np.ndarray, matches: Matches, alive) -> tuple[np.ndarray, np.ndarray]:
+    """Matches whose previous feature is tied to a live landmark -> (landmark ids, current feature indices)."""
+    if not len(matches):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lm, cur = prev_landmark[matches.pairs[:, 0]], matches.pairs[:, 1]
+    lm, cur = lm[lm >= 0], cur[lm >= 0]
+    ok = alive(lm)
+    return lm[ok], cur[ok]
 
 
 def _no_matches() -> Matches:
