@@ -179,6 +179,13 @@ class LoopConfig:
     loop_sigma_rot: float = 0.01  # and of a verified loop edge
     loop_sigma_trans: float = 0.05
     pgo_iterations: int = 100
+    global_ba: bool = True  # a global bundle adjustment of poses and points after the pose graph (global_ba.py)
+    global_ba_iterations: int = 10
+    global_ba_max_px: float = 8.0  # observations further from their landmark's projection are left out
+    # A global BA result moving a keyframe further from the pose graph's solution than max_move_m + move_fraction x
+    # the pose graph's largest correction is not applied (global_ba.implausible).
+    global_ba_max_move_m: float = 0.5
+    global_ba_move_fraction: float = 0.5
     # A verified loop must agree with the odometry up to this drift: the correction it implies for the query keyframe
     # may be at most max_drift_fraction x the distance driven since the matched keyframe + max_drift_floor_m (the
     # synthetic town repeats buildings: a 187 m false loop passed PnP/PnL and scan registration). 0 disables.

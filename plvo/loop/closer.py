@@ -1,12 +1,13 @@
-"""Loop closing (paper II-F): BoW query, geometric verification, pose-graph correction, global BA hook.
+"""Loop closing (paper II-F): BoW query, geometric verification, pose-graph correction.
 
 `LoopCloser.on_keyframe(kf)` runs one keyframe through the whole chain and returns a `LoopOutcome`. It is
 synchronous; the system runs it in its loop worker. After an accepted loop the closer optimises a pose graph
 (gtsam Pose3: a prior on the first keyframe, BetweenFactors of consecutive keyframes as measured when each
-keyframe arrived, every accepted loop edge) with Levenberg-Marquardt, then hands the corrected poses to the
-optional global bundle-adjustment hook, and keeps the result as its own estimate. The system must apply the
-corrected poses to its map (and tracker) and tell the closer of later changes with `update_poses`; the odometry
-edge of a new keyframe is measured against the closer's estimate of the previous one.
+keyframe arrived, every accepted loop edge) with Levenberg-Marquardt and keeps the result as its own estimate.
+The system must apply the corrected poses to its map (and tracker) and tell the closer of later changes with
+`update_poses`; the odometry edge of a new keyframe is measured against the closer's estimate of the previous
+one. The global bundle adjustment that follows (plvo.loop.global_ba) needs the map's landmarks, so the loop
+worker runs it, on the same edges (`pose_graph_edges`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,9 +30,6 @@ from plvo.loop.vocabulary import Vocabulary, load_default
 log = logging.getLogger(__name__)
 
 SCAN_VOXEL_M = 0.2  # scans are kept thinned to this voxel size (registration works at 0.25-0.5 m)
-
-# (ids (K,), poses (K,4,4) after the pose graph, loop edges) -> refined poses (K,4,4), or None to keep them.
-GlobalBAHook = Callable[[np.ndarray, np.ndarray, tuple["LoopEdge", ...]], "np.ndarray | None"]
 
 
 @dataclass(frozen=True)
@@ -53,7 +50,7 @@ class LoopOutcome:
     detection: candidates and their scores; verifications: one per candidate checked; accepted: the new loop
     edge or None; rejections: "candidate <id>: <reason>" (or the detection's reason when nothing was checked);
     kf_ids (K,) with poses_before / poses_after (K,4,4) T_world_cam when a correction ran, else None;
-    times in milliseconds: bow (transform), query (database), verify, correct (pose graph + global BA).
+    times in milliseconds: bow (transform), query (database), verify, correct (pose graph).
     """
 
     kf_id: int
@@ -109,12 +106,11 @@ class LoopCloser:
 
     def __init__(self, K: np.ndarray, orb_vocab: Vocabulary | None = None, lbd_vocab: Vocabulary | None = None,
                  cfg: LoopConfig | None = None, T_cam_velo: np.ndarray | None = None,
-                 reg_cfg: RegistrationConfig | None = None, global_ba: GlobalBAHook | None = None) -> None:
+                 reg_cfg: RegistrationConfig | None = None) -> None:
         self.cfg = cfg or LoopConfig()
         self.K = np.asarray(K, float)
         self.T_cam_velo = None if T_cam_velo is None else np.asarray(T_cam_velo, float)
         self.reg_cfg = reg_cfg
-        self.global_ba = global_ba
         if orb_vocab is None or lbd_vocab is None:
             d = Path(self.cfg.vocab_dir) if self.cfg.vocab_dir else None
             orb_vocab = orb_vocab or (Vocabulary.load(d / "orb.npz") if d else load_default("orb"))
@@ -131,6 +127,22 @@ class LoopCloser:
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe ids (K,) and the closer's current T_world_cam estimates (K,4,4)."""
         return np.asarray(self._ids, np.int64), np.stack([self._poses[i] for i in self._ids])
+
+    def pose_graph_edges(self) -> tuple[list[tuple[int, int, np.ndarray]], list[tuple[int, int, np.ndarray]]]:
+        """Odometry and loop edges (i, j, T_i_j) by index into `poses()`, as the pose graph uses them."""
+        index = {k: n for n, k in enumerate(self._ids)}
+        odometry = [(n - 1, n, self._odom[self._ids[n]]) for n in range(1, len(self._ids))]
+        loops = [(index[e.match_id], index[e.query_id], e.T_match_query) for e in self.edges]
+        return odometry, loops
+
+    def point_depth(self, kf_id: int, features: np.ndarray) -> np.ndarray:
+        """(n,) feature indices of keyframe kf_id -> (n,) their depth-prior z in that camera, NaN where none."""
+        pts = self._kfs[kf_id].points_cam
+        f = np.asarray(features, np.int64)
+        ok = (f >= 0) & (f < len(pts))
+        out = np.full(len(f), np.nan)
+        out[ok] = pts[f[ok], 2]
+        return out
 
     def update_poses(self, ids: np.ndarray, poses: np.ndarray) -> None:
         """Tell the closer of refined T_world_cam (K,4,4) of keyframes ids (K,) (e.g. after bundle adjustment)."""
@@ -208,14 +220,8 @@ class LoopCloser:
 
     def _correct(self, edge: LoopEdge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ids, before = self.poses()
-        index = {k: n for n, k in enumerate(self._ids)}
-        odometry = [(index[self._ids[n - 1]], n, self._odom[self._ids[n]]) for n in range(1, len(self._ids))]
-        loops = [(index[e.match_id], index[e.query_id], e.T_match_query) for e in self.edges]
+        odometry, loops = self.pose_graph_edges()
         after = optimize_pose_graph(before, odometry, loops, self.cfg)
-        if self.global_ba is not None:
-            refined = self.global_ba(ids, after, tuple(self.edges))
-            if refined is not None:
-                after = np.asarray(refined, float)
         self.update_poses(ids, after)
         # Odometry edges stay as measured: they are the tracker's constraints, not the current estimate.
         log.info("loop %d -> %d: corrected %d keyframe poses, last moved by %.2f m", edge.query_id,

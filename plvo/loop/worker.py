@@ -8,17 +8,20 @@ tracker follows through its re-anchoring on the last keyframe. After a correctio
 keyframe trajectory, its odometry chain and the loop edges goes to the recorders; timings: loop_bow, loop_query,
 loop_verify, loop_correct (pose graph), loop_apply (map update), loop (all), seconds, one entry a keyframe.
 
-With `backend.concurrent` the back end may be optimising a window read before the correction and write it back
-afterwards (absolute poses), undoing the correction on that window; inline workers (what the evaluation
-and the tests use) do not have this race.
+After the pose graph, a global bundle adjustment (plvo.loop.global_ba) refines every keyframe pose and every
+point landmark two keyframes see, on the pose graph's edges plus the point factors; points it did not adjust and
+all lines move rigidly with the keyframe that created them (timing loop_global_ba). `loop.global_ba = false`
+stops after the pose graph.
 
-A global bundle adjustment after the pose graph (ORB-SLAM2's last step) is not run: the pose graph plus the
-rigid landmark update already makes the map consistent, and the local bundle adjustment refines it as the
-vehicle goes on. This is a deliberate simplification, stated in the README.
+With `backend.concurrent` the back end may be optimising a window read before the correction and write it back
+afterwards; it rebases that window on its first keyframe's corrected pose, so the correction survives, but the
+window's relative poses are the pre-correction ones. Inline workers (what the evaluation and the tests use) do
+not have this race.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -26,6 +29,7 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.geometry import se3
+from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import LoopKeyframe
 from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, GraphResult, LoopResult, MetricsResult
@@ -50,6 +54,8 @@ class LoopWorker(KeyframeWorker):
                                  reg_cfg=config.registration)
         self.n_corrections = 0
         self.loop_edges: list[tuple[int, int]] = []  # (match, query) keyframe ids of accepted loops
+        self.last_global_ba = None  # BAResult of the latest global bundle adjustment
+        self.global_ba_rejected = 0
         super().__init__(threaded=config.backend.concurrent)
 
     def process(self, kf: KeyframeInfo) -> LoopOutcome | None:
@@ -61,12 +67,19 @@ class LoopWorker(KeyframeWorker):
         lk = self._loop_keyframe(kf, snap.keyframe_T_world_cam[kf.kf_id])
         outcome = self.closer.on_keyframe(lk)
         t1 = time.perf_counter()
+        t_gba = 0.0
         if outcome.accepted is not None and outcome.poses_after is not None:
             self._apply(outcome)
+            t2 = time.perf_counter()
+            if self.cfg.loop.global_ba:
+                moved = np.linalg.norm(outcome.poses_after[:, :3, 3] - outcome.poses_before[:, :3, 3], axis=1)
+                self._global_ba(float(moved.max()))
+            t_gba = time.perf_counter() - t2
         # loop_correct: the closer's pose graph; loop_apply: writing it into the map (under the map lock).
         self.add_timing({"loop_bow": 1e-3 * outcome.bow_ms, "loop_query": 1e-3 * outcome.query_ms,
                          "loop_verify": 1e-3 * outcome.verify_ms, "loop_correct": 1e-3 * outcome.correct_ms,
-                         "loop_apply": time.perf_counter() - t1, "loop": time.perf_counter() - t0})
+                         "loop_apply": time.perf_counter() - t1 - t_gba, "loop_global_ba": t_gba,
+                         "loop": time.perf_counter() - t0})
         self.emit(kf.frame_index, *self._results(kf.frame_index, outcome))
         return outcome
 
@@ -81,8 +94,53 @@ class LoopWorker(KeyframeWorker):
                                           kf.frame_index)
 
     def _apply(self, outcome: LoopOutcome) -> None:
-        """Write the corrected poses into the map; move landmarks and newer keyframes rigidly along."""
-        ids, after = np.asarray(outcome.kf_ids), np.asarray(outcome.poses_after)
+        """Write the pose graph's poses into the map; move landmarks and newer keyframes rigidly along."""
+        n = self._write(np.asarray(outcome.kf_ids), np.asarray(outcome.poses_after))
+        self.n_corrections += 1
+        e = outcome.accepted
+        self.loop_edges.append((e.match_id, e.query_id))
+        log.info("loop %d -> %d closed: %d keyframes corrected", e.query_id, e.match_id, n)
+
+    def _global_ba(self, correction_m: float) -> None:
+        """Bundle-adjust all keyframes and the points two of them see (global_ba.py), write the result back."""
+        ids, _ = self.closer.poses()
+        poses = np.stack([self.map.keyframe_pose(int(k)) for k in ids])  # with the landmarks' current frame
+        odometry, loops = self.closer.pose_graph_edges()
+        obs = self.map.point_observations()
+        keep = np.isin(obs.keyframe, ids)
+        counts = np.bincount(obs.landmark[keep], minlength=int(obs.landmark.max(initial=-1)) + 1)
+        keep &= counts[obs.landmark] >= 2  # a landmark one keyframe sees tells the poses nothing
+        obs = dataclasses.replace(obs, landmark=obs.landmark[keep], keyframe=obs.keyframe[keep],
+                                  feature=obs.feature[keep], measurement=obs.measurement[keep])
+        if not len(obs.landmark):
+            return
+        depth = np.full(len(obs.feature), np.nan)
+        if self.cfg.tracking.use_depth_priors:
+            for k in np.unique(obs.keyframe):
+                sel = obs.keyframe == k
+                depth[sel] = self.closer.point_depth(int(k), obs.feature[sel])
+        row = np.searchsorted(ids, obs.keyframe)
+        obs = dataclasses.replace(obs, keyframe=row)
+        positions = self.map.point_positions(np.unique(obs.landmark))
+        problem, pt_ids = global_ba.build_problem(self.K, poses, odometry, loops, obs, positions, depth,
+                                                   self.cfg.loop)
+        res = global_ba.optimize(problem, self.cfg.backend, self.cfg.loop, self.cfg.tracking.use_depth_priors,
+                                 self.cfg.backend.stereo_baseline_m)
+        used = res.point_used
+        why = global_ba.implausible(poses, res, self.cfg.loop, correction_m)
+        if why:
+            log.warning("global BA rejected, the pose graph's result is kept: %s", why)
+            self.global_ba_rejected += 1
+            return
+        self._write(ids, res.T_world_cam, pt_ids[used], res.points[used])
+        self.closer.update_poses(ids, res.T_world_cam)
+        self.last_global_ba = res
+
+    def _write(self, ids: np.ndarray, after: np.ndarray, point_ids: np.ndarray | None = None,
+               point_positions: np.ndarray | None = None) -> int:
+        """Set keyframes ids to poses after (K,4,4); keyframes made since move with the last of them; landmarks
+        move rigidly with the keyframe that created them, except point_ids, set to point_positions. Returns the
+        number of keyframes moved."""
         with self.map.lock:
             current = np.stack([self.map.keyframe_pose(int(k)) for k in ids])
             corr = after @ np.stack([se3.inv(T) for T in current])  # per keyframe: T_new T_old^-1
@@ -94,12 +152,11 @@ class LoopWorker(KeyframeWorker):
             pt_ids, pt_kf = self.map.point_ids_and_first_keyframes()
             ln_ids, ln_kf = self.map.line_ids_and_first_keyframes()
             pts = _move(self.map.point_positions(pt_ids), pt_kf, all_corr, row)
+            if point_ids is not None and len(point_ids):
+                pts[np.searchsorted(pt_ids, point_ids)] = point_positions
             lns = _move(self.map.line_endpoints(ln_ids).reshape(-1, 3), np.repeat(ln_kf, 2), all_corr, row)
             self.map.apply_update(pt_ids, pts, ln_ids, lns.reshape(-1, 2, 3), all_ids, poses)
-        self.n_corrections += 1
-        e = outcome.accepted
-        self.loop_edges.append((e.match_id, e.query_id))
-        log.info("loop %d -> %d closed: %d keyframes corrected", e.query_id, e.match_id, len(all_ids))
+        return len(all_ids)
 
     def _results(self, frame_index: int, outcome: LoopOutcome) -> list[object]:
         """One LoopResult a verified candidate (or for the best candidate when none was verified)."""

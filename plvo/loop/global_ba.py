@@ -1,0 +1,115 @@
+"""Global bundle adjustment after a loop's pose graph (paper II-F, "loop correction is performed using a global
+bundle adjustment algorithm [4]", ORB-SLAM2's last step).
+
+The graph: every keyframe the loop closer knows (the first one held fixed), the pose graph's own edges (the
+odometry edges as each keyframe arrived and every accepted loop edge, with the pose graph's sigmas), and every
+point landmark that two or more of those keyframes observe, through gtsam's C++ stereo factor where the
+observation has a lidar depth prior and the monocular projection factor otherwise (the back end's point factors,
+`plvo.backend.factors`). It starts from the pose graph's solution, with the landmarks moved along with it.
+
+Why the pose graph's sigmas and not the back end's 0.5 mm relative-pose factors: the drift a loop removes was
+accumulated through exactly those factors; with their weight the global adjustment would pull the corrected
+chain back towards the drifted odometry. The pose graph's weights say how to spread the loop's error; the
+points then make the spread consistent with what the keyframes saw.
+
+The result is applied only when it is a refinement (`implausible`): finite, a lower cost, and no keyframe moved
+further from the pose graph's solution than a fraction of the pose graph's own correction.
+
+Lines are not in this graph: gtsam has no 3D line type, and a Python factor per line made an 8-keyframe window
+take seconds (factors.py); a map-wide graph of them would take minutes. Line landmarks move rigidly with the
+keyframe that created them, as after the pose graph.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from plvo.backend.factors import optimize_gtsam
+from plvo.backend.problem import BAProblem, BAResult
+from plvo.backend.relpose import inv_batch
+from plvo.config import BackendConfig, LoopConfig
+from plvo.tracking.map import Observations
+
+log = logging.getLogger(__name__)
+
+
+def build_problem(K: np.ndarray, poses: np.ndarray, odometry: list[tuple[int, int, np.ndarray]],
+                  loops: list[tuple[int, int, np.ndarray]], obs: Observations, positions: np.ndarray,
+                  depth: np.ndarray, cfg: LoopConfig) -> tuple[BAProblem, np.ndarray]:
+    """The global problem -> (BAProblem, landmark id of each problem point).
+
+    poses (K,4,4) T_world_cam in the order of the closer's keyframes; odometry and loop edges (i, j, T_i_j) by
+    index into poses, as `plvo.loop.closer.optimize_pose_graph` takes them; obs: point observations whose
+    `keyframe` is already an index into poses; positions (P,3) world positions of np.unique(obs.landmark);
+    depth (len(obs),) z of each observation or NaN.
+
+    Observations further than cfg.global_ba_max_px from their landmark's projection are left out: the map holds
+    some gross ones (landmarks refined while a keyframe that saw them was not in the window), and 0.1 px factors
+    with a Huber kernel still let a few hundred 50-px residuals drag the keyframes of a turn by metres.
+    """
+    lm_ids, idx = np.unique(obs.landmark, return_inverse=True)
+    positions = np.asarray(positions, float)
+    keep = reprojection_errors(K, poses, positions[idx], obs.keyframe, obs.measurement) <= cfg.global_ba_max_px
+    keep &= np.bincount(idx[keep], minlength=len(lm_ids))[idx] >= 2  # one view left: nothing to adjust
+    used, pt_idx = np.unique(idx[keep], return_inverse=True)
+    # One weight for all edges: the pose graph's odometry sigmas; a loop edge scales it by (odom / loop)^2.
+    weight = np.r_[np.full(3, cfg.odom_sigma_trans ** -2), np.full(3, cfg.odom_sigma_rot ** -2)]
+    loop_zeta = (cfg.odom_sigma_trans / cfg.loop_sigma_trans) ** 2
+    edges = list(odometry) + list(loops)
+    zeta = np.r_[np.ones(len(odometry)), np.full(len(loops), loop_zeta)]
+    log.debug("global BA: %d keyframes, %d odometry and %d loop edges, %d points, %d of %d observations kept",
+              len(poses), len(odometry), len(loops), len(used), int(keep.sum()), len(keep))
+    problem = BAProblem(
+        K=np.asarray(K, float), T_world_cam=np.asarray(poses, float), fixed=np.arange(len(poses)) == 0,
+        points=positions[used], pt_kf=np.asarray(obs.keyframe, int)[keep], pt_idx=pt_idx,
+        pt_uv=np.asarray(obs.measurement, float)[keep], pt_depth=np.asarray(depth, float)[keep],
+        rel_ij=np.array([(i, j) for i, j, _ in edges], int).reshape(-1, 2),
+        rel_T=np.array([T for _, _, T in edges], float).reshape(-1, 4, 4), rel_zeta=zeta, rel_weight=weight,
+    )
+    return problem, lm_ids[used]
+
+
+def reprojection_errors(K: np.ndarray, poses: np.ndarray, points: np.ndarray, kf: np.ndarray,
+                        uv: np.ndarray) -> np.ndarray:
+    """(K,4,4) T_world_cam, (N,3) world points, (N,) keyframe index, (N,2) px -> (N,) pixel errors (inf behind)."""
+    T_cw = inv_batch(np.asarray(poses, float))[np.asarray(kf, int)]
+    Xc = np.einsum("nij,nj->ni", T_cw[:, :3, :3], points) + T_cw[:, :3, 3]
+    z = Xc[:, 2]
+    proj = (Xc @ np.asarray(K, float).T)[:, :2] / np.where(z > 1e-6, z, 1.0)[:, None]
+    err = np.linalg.norm(proj - uv, axis=1)
+    return np.where(z > 1e-6, err, np.inf)
+
+
+def optimize(problem: BAProblem, backend_cfg: BackendConfig, loop_cfg: LoopConfig, use_depth_priors: bool,
+             stereo_baseline_m: float) -> BAResult:
+    """gtsam Levenberg-Marquardt over the global problem, at most loop_cfg.global_ba_iterations iterations."""
+    cfg = dataclasses.replace(backend_cfg, iterations=int(loop_cfg.global_ba_iterations))
+    res = optimize_gtsam(problem, cfg, use_depth_priors=use_depth_priors, use_lines=False,
+                         stereo_baseline_m=stereo_baseline_m)
+    log.info("global BA: %d keyframes, %d points, cost %.4g -> %.4g in %d iterations, %.2f s", problem.n_keyframes,
+             int(res.point_used.sum()), res.initial_cost, res.final_cost, res.iterations, res.time_s)
+    return res
+
+
+def implausible(poses: np.ndarray, res: BAResult, cfg: LoopConfig, correction_m: float = 0.0) -> str:
+    """Why a global BA result must not be applied, or "" when it may.
+
+    poses (K,4,4): the pose graph's solution it started from; correction_m: how far the pose graph moved the
+    keyframes (the largest move). The pose graph has made the large correction; the global adjustment refines
+    it, by at most cfg.global_ba_max_move_m + cfg.global_ba_move_fraction x correction_m for any keyframe. A
+    larger move means landmarks that disagree with the pose graph pulled the keyframes (seen where tracking was
+    lost in a sharp turn and re-initialised: old and new landmarks there differ by metres).
+    """
+    if not (np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.points[res.point_used]))):
+        return "non-finite values"
+    if res.final_cost > res.initial_cost:
+        return f"the cost rose from {res.initial_cost:.4g} to {res.final_cost:.4g}"
+    move = np.linalg.norm(res.T_world_cam[:, :3, 3] - np.asarray(poses)[:, :3, 3], axis=1)
+    limit = cfg.global_ba_max_move_m + cfg.global_ba_move_fraction * correction_m
+    if move.max() > limit:
+        return (f"it would move keyframe {int(move.argmax())} (in the closer's order) by {move.max():.2f} m "
+                f"(at most {limit:.2f} m after a {correction_m:.2f} m pose-graph correction)")
+    return ""
