@@ -240,9 +240,9 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
     return b
 
 
-def _select(problem, pt_ok, ln_ok, use_depth_priors) -> dict[str, np.ndarray]:
-    pt = np.flatnonzero(pt_ok[problem.pt_idx])
-    ln = np.flatnonzero(ln_ok[problem.ln_idx])
+def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok, ln_obs_ok) -> dict[str, np.ndarray]:
+    pt = np.flatnonzero(pt_ok[problem.pt_idx] & pt_obs_ok)
+    ln = np.flatnonzero(ln_ok[problem.ln_idx] & ln_obs_ok)
     depth = problem.pt_depth[pt] if use_depth_priors else np.full(len(pt), np.nan)
     prior = problem.ln_prior[ln] if use_depth_priors else np.full((len(ln), 2, 3), np.nan)
     i, j = problem.rel_ij[:, 0], problem.rel_ij[:, 1]
@@ -342,29 +342,15 @@ def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.nd
     return out[0], out[1]
 
 
-def optimize(
-    problem: BAProblem, cfg: BackendConfig | None = None, *, use_depth_priors: bool = True,
-    use_lines: bool = True, stereo_baseline_m: float = DEFAULT_STEREO_BASELINE_M,
-) -> BAResult:
-    """Bundle-adjust the window: free poses T_world_cam (K,4,4), points (P,3) and lines (L,2,3), all world."""
-    cfg = cfg or BackendConfig()
-    t0 = time.perf_counter()
-    pt_ok, ln_ok = usable_landmarks(problem, use_depth_priors)
-    if not use_lines:
-        ln_ok = np.zeros_like(ln_ok)
-    T_cw = np.stack([se3.inv(T) for T in problem.T_world_cam])
-    pts = problem.points.astype(float).copy()
-    U, W = np.tile(np.eye(3), (problem.n_lines, 1, 1)), np.tile(np.eye(2), (problem.n_lines, 1, 1))
-    origin = np.zeros((problem.n_lines, 3))
-    if ln_ok.any():  # only sound lines (usable_landmarks): collapsed segments have no Pluecker form
-        o = _line_origins(problem.lines[ln_ok], problem.T_world_cam[:, :3, 3].mean(axis=0))
-        origin[ln_ok] = o
-        U[ln_ok], W[ln_ok] = plucker_to_orth(plucker_from_points(problem.lines[ln_ok, 0] - o, problem.lines[ln_ok, 1] - o))
-    state = (T_cw, pts, U, W)
+def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, baseline):
+    """LM from state over the selected observations -> (state, initial cost, cost, iterations, pt_ok, ln_ok);
+    landmarks the window cannot determine are dropped first (pt_ok / ln_ok are copies)."""
+    pt_ok, ln_ok = pt_ok.copy(), ln_ok.copy()
     for attempt in range(3):  # drop landmarks the window cannot determine, then build again
-        lay, sel = _Layout(problem, pt_ok, ln_ok), _select(problem, pt_ok, ln_ok, use_depth_priors)
+        lay = _Layout(problem, pt_ok, ln_ok)
+        sel = _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok, ln_obs_ok)
         sel["origin"] = origin
-        blocks = _evaluate(problem, *state, lay, sel, cfg, stereo_baseline_m)
+        blocks = _evaluate(problem, *state, lay, sel, cfg, baseline)
         normal = blocks.normal_equations(lay)
         if attempt == 2:
             break
@@ -385,7 +371,7 @@ def optimize(
             if predicted < 1e-7 * cost:
                 break
             cand = _apply(delta, lay, *state)
-            cand_blocks = _evaluate(problem, *cand, lay, sel, cfg, stereo_baseline_m)
+            cand_blocks = _evaluate(problem, *cand, lay, sel, cfg, baseline)
             cand_cost = cand_blocks.cost()
             if np.isfinite(cand_cost) and cand_cost < cost:
                 improved = True
@@ -398,6 +384,62 @@ def optimize(
         if rel_drop < 1e-6 or cost < 1e-12 or np.max(np.abs(delta)) < 1e-10:
             break
         normal = blocks.normal_equations(lay)
+    return state, initial_cost, cost, it, pt_ok, ln_ok
+
+
+def _outliers(problem, state, origin, pt_ok, ln_ok, cfg, use_depth_priors, baseline) -> tuple[np.ndarray, np.ndarray]:
+    """-> (O,) and (M,) bool: point / line observations of used landmarks whose residual (all rows, in the
+    factor's units: pixels, and metres for a line's prior row) exceeds cfg.outlier_px at `state`."""
+    all_pt, all_ln = np.ones(len(problem.pt_idx), bool), np.ones(len(problem.ln_idx), bool)
+    lay = _Layout(problem, pt_ok, ln_ok)
+    sel = _select(problem, pt_ok, ln_ok, use_depth_priors, all_pt, all_ln)
+    sel.update(origin=origin, rel=sel["rel"][:0])
+    bad_pt, bad_ln = np.zeros(len(all_pt), bool), np.zeros(len(all_ln), bool)
+    only_points = {**sel, "ln": sel["ln"][:0], "prior": sel["prior"][:0]}
+    only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0]}
+    for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
+                                   (bad_ln, only_lines, sel["ln"], cfg.sigma_line)):
+        if len(rows):
+            r = _evaluate(problem, *state, lay, part, cfg, baseline).items[0][0]
+            bad[rows] = sigma * np.linalg.norm(r, axis=1) > cfg.outlier_px
+    return bad_pt, bad_ln
+
+
+def optimize(
+    problem: BAProblem, cfg: BackendConfig | None = None, *, use_depth_priors: bool = True,
+    use_lines: bool = True, stereo_baseline_m: float = DEFAULT_STEREO_BASELINE_M,
+) -> BAResult:
+    """Bundle-adjust the window: free poses T_world_cam (K,4,4), points (P,3) and lines (L,2,3), all world."""
+    cfg = cfg or BackendConfig()
+    t0 = time.perf_counter()
+    pt_ok, ln_ok = usable_landmarks(problem, use_depth_priors)
+    if not use_lines:
+        ln_ok = np.zeros_like(ln_ok)
+    T_cw = np.stack([se3.inv(T) for T in problem.T_world_cam])
+    pts = problem.points.astype(float).copy()
+    U, W = np.tile(np.eye(3), (problem.n_lines, 1, 1)), np.tile(np.eye(2), (problem.n_lines, 1, 1))
+    origin = np.zeros((problem.n_lines, 3))
+    if ln_ok.any():  # only sound lines (usable_landmarks): collapsed segments have no Pluecker form
+        o = _line_origins(problem.lines[ln_ok], problem.T_world_cam[:, :3, 3].mean(axis=0))
+        origin[ln_ok] = o
+        U[ln_ok], W[ln_ok] = plucker_to_orth(plucker_from_points(problem.lines[ln_ok, 0] - o, problem.lines[ln_ok, 1] - o))
+    state = (T_cw, pts, U, W)
+    pt_obs_ok, ln_obs_ok = np.ones(len(problem.pt_idx), bool), np.ones(len(problem.ln_idx), bool)
+    state, initial_cost, cost, it, pt_ok, ln_ok = _levenberg_marquardt(
+        problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, stereo_baseline_m)
+    if cfg.outlier_px > 0:
+        # ORB-SLAM2's two rounds: observations still far off after the first are wrong associations (a facade's
+        # repeated windows matched one period off); left in, thousands of them pull the keyframes together.
+        bad_pt, bad_ln = _outliers(problem, state, origin, pt_ok, ln_ok, cfg, use_depth_priors, stereo_baseline_m)
+        if bad_pt.any() or bad_ln.any():
+            pt_obs_ok, ln_obs_ok = ~bad_pt, ~bad_ln
+            pt_ok &= np.bincount(problem.pt_idx[pt_obs_ok], minlength=problem.n_points) >= 2
+            ln_ok &= np.bincount(problem.ln_idx[ln_obs_ok], minlength=problem.n_lines) >= 2
+            state, _, cost, it2, pt_ok, ln_ok = _levenberg_marquardt(
+                problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, stereo_baseline_m)
+            it += it2
+            log.debug("BA: %d point and %d line observations over %.1f px left out", int(bad_pt.sum()),
+                      int(bad_ln.sum()), cfg.outlier_px)
     T_cw_new, pts, U, W = state
     lines = problem.lines.astype(float).copy()
     if ln_ok.any():

@@ -142,6 +142,18 @@ def rotation_angle(T: np.ndarray) -> float:
     return float(np.arctan2(s, (np.trace(R) - 1.0) / 2.0))
 
 
+def orthonormalize_batch(T: np.ndarray) -> np.ndarray:
+    """(N,4,4) transforms -> the same with each rotation block projected onto SO(3) (nearest in Frobenius norm)."""
+    T = np.asarray(T, float)
+    U, _, Vt = np.linalg.svd(T[:, :3, :3])
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, -1] *= -1
+    out = T.copy()
+    out[:, :3, :3] = U @ Vt
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """Project the rotation block back onto SO(3) (poses read from text drift off it)."""
     U, _, Vt = np.linalg.svd(T[:3, :3])

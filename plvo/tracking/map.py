@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from plvo.geometry import se3
+
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
 
 
@@ -134,7 +136,8 @@ class LandmarkMap:
     def add_keyframe(self, frame_index: int, T_world_cam: np.ndarray) -> int:
         """Register a keyframe with its (4,4) pose; returns its id (0, 1, ...)."""
         with self.lock:
-            row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=np.asarray(T_world_cam)[None])
+            T = se3.orthonormalize_batch(np.asarray(T_world_cam, float)[None])
+            row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
             self.version += 1
             return int(row[0])
 
@@ -296,7 +299,12 @@ class LandmarkMap:
                 self._lines.cols["endpoints"][ids[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
             if keyframe_ids is not None and len(keyframe_ids):
                 ids = np.asarray(keyframe_ids, dtype=np.int64)
-                self._kfs.cols["T_world_cam"][ids] = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
+                # Re-projected onto SE(3) on every write: workers chain these poses through rigid inverses
+                # (transposes), which turn a rotation's tiny non-orthogonality into a larger one each keyframe;
+                # unchecked it grew x3 a keyframe, to a 1e-3 scale error in the rotation blocks after ~35
+                # keyframes, which squeezed keyframe spacing by a quarter on straight synthetic streets.
+                T = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
+                self._kfs.cols["T_world_cam"][ids] = se3.orthonormalize_batch(T)
             self.version += 1
             return self.version
 
