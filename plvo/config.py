@@ -99,6 +99,9 @@ class TrackingConfig:
     min_tracked_landmarks: int = 60  # fewer: make a keyframe early
     max_rotation_deg: float = 10.0  # larger rotation since the last keyframe: make a keyframe early
     min_pnp_inliers: int = 15  # fewer: tracking is lost and re-initialised from the current lidar depth
+    # A solution with fewer inliers than this share of the last frame's is checked against matching without the
+    # motion model (frontend.py); 0 disables.
+    weak_inlier_share: float = 0.4
     ransac_reproj_px: float = 2.0
     ransac_line_px: float = 2.0
     ransac_iterations: int = 1000

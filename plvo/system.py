@@ -121,6 +121,7 @@ class System:
             self._loop = LoopWorker(calib, self.config, self._frontend.map)
             if self._backend is not None:
                 self._backend.loop_edges = self._loop.loop_edges  # drawn in the keyframe graph
+                self._loop.registration_edges = self._backend.registration_edges  # for the global BA
 
     def _emit(self, frame_index: int, results: Iterable[Any]) -> None:
         with self._clock.stage("recording"):

@@ -22,7 +22,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-REVISIT_M, REVISIT_DEG = 5.0, 30.0
 SETTINGS = {"no_loop": {"enabled": False}, "pose_graph": {"global_ba": False}, "pose_graph_global_ba": {}}
 
 
@@ -52,8 +51,8 @@ def _run(root: str, seq: str, setting: str) -> dict:
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.eval.kitti_metric import absolute_trajectory_error
+    from plvo.eval.revisits import revisits as true_revisits
     from plvo.eval.tasks import anchor
-    from plvo.geometry import se3
     from plvo.system import run_dataset
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": SETTINGS[setting]})
@@ -71,15 +70,7 @@ def _run(root: str, seq: str, setting: str) -> dict:
                           if k.startswith("loop") and np.any(np.asarray(v) > 0)}}
     if setting == "no_loop":
         return res
-    gap = cfg.loop.min_keyframe_gap
-    kf = rec.kf_frame
-    revisits: dict[int, set[int]] = {}
-    for q, fq in kf.items():
-        for m, fm in kf.items():
-            if m < q - gap:
-                dT = se3.inv(gt[fm]) @ gt[fq]
-                if np.linalg.norm(dT[:3, 3]) < REVISIT_M and np.degrees(se3.rotation_angle(dT)) < REVISIT_DEG:
-                    revisits.setdefault(q, set()).add(m)
+    revisits = true_revisits(gt, rec.kf_frame, cfg.loop.min_keyframe_gap)
     accepted = [r for r in rec.loops if r.accepted]
     true = [r for r in accepted if r.match_keyframe in revisits.get(r.query_keyframe, set())]
     qs = sorted(revisits)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from plvo.config import BackendConfig, LoopConfig, SystemConfig
-from plvo.geometry import se3
+from plvo.eval.revisits import revisits
 from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, TrackingResult
 
 pytestmark = pytest.mark.slow
@@ -74,14 +74,7 @@ def run(synth_sequence_factory):
 
 def _revisits(gt: np.ndarray, kf_frame: dict[int, int], gap: int) -> dict[int, set[int]]:
     """Keyframe id -> ids of keyframes more than `gap` back that it revisits (ground truth)."""
-    out: dict[int, set[int]] = {}
-    for q, fq in kf_frame.items():
-        for m, fm in kf_frame.items():
-            if m < q - gap:
-                dT = se3.inv(gt[fm]) @ gt[fq]
-                if np.linalg.norm(dT[:3, 3]) < REVISIT_M and np.degrees(se3.rotation_angle(dT)) < REVISIT_DEG:
-                    out.setdefault(q, set()).add(m)
-    return out
+    return revisits(gt, kf_frame, gap, REVISIT_M, REVISIT_DEG)
 
 
 def test_loop_is_closed_and_end_point_error_falls(run):

@@ -142,6 +142,10 @@ class Backend(KeyframeWorker):
         self.emit(kf.frame_index, *self._results_of(step, kf.frame_index))
         return step
 
+    def registration_edges(self) -> list[tuple[int, int, np.ndarray, float]]:
+        """Every relative-pose factor so far: (keyframe i, keyframe j, T_cam_i_cam_j, zeta) (for the global BA)."""
+        return [(e.i, e.j, e.T_i_j, e.zeta) for e in list(self._edges)]
+
     def _opt_kwargs(self) -> dict:
         return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines,
                 "stereo_baseline_m": self.cfg.backend.stereo_baseline_m}

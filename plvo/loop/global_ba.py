@@ -1,16 +1,18 @@
 """Global bundle adjustment after a loop's pose graph (paper II-F, "loop correction is performed using a global
 bundle adjustment algorithm [4]", ORB-SLAM2's last step).
 
-The graph: every keyframe the loop closer knows (the first one held fixed), the pose graph's own edges (the
-odometry edges as each keyframe arrived and every accepted loop edge, with the pose graph's sigmas), and every
+The graph: every keyframe the loop closer knows (the first one held fixed), relative-pose edges (below), and every
 point landmark that two or more of those keyframes observe, through gtsam's C++ stereo factor where the
 observation has a lidar depth prior and the monocular projection factor otherwise (the back end's point factors,
 `plvo.backend.factors`). It starts from the pose graph's solution, with the landmarks moved along with it.
 
-Why the pose graph's sigmas and not the back end's 0.5 mm relative-pose factors: the drift a loop removes was
-accumulated through exactly those factors; with their weight the global adjustment would pull the corrected
-chain back towards the drifted odometry. The pose graph's weights say how to spread the loop's error; the
-points then make the spread consistent with what the keyframes saw.
+Edges and weights: the back end's registration factors between consecutive keyframes, with their zeta and its
+weights, where the back end ran (otherwise the pose graph's odometry edges, ~1e-4 of that); each loop edge as
+strong as a registration factor (zeta 1). With the pose graph's 5 cm / 0.01 rad edges instead, the thousands of
+point factors, which carry the depth priors' scale and the drift, overruled them: the adjustment undid the loop
+at the loop keyframe (0.002 -> 0.27 m in the System loop test) and, without the registrations, pulled the
+keyframes between towards the visual scale (0.09 -> 0.33 m). The map's landmarks are not fused across the loop
+(ORB-SLAM2 fuses them), so the loop edge is the only constraint that closes it.
 
 The result is applied only when it is a refinement (`implausible`): finite, a lower cost, and no keyframe moved
 further from the pose graph's solution than a fraction of the pose graph's own correction.
@@ -36,40 +38,43 @@ from plvo.tracking.map import Observations
 log = logging.getLogger(__name__)
 
 
-def build_problem(K: np.ndarray, poses: np.ndarray, odometry: list[tuple[int, int, np.ndarray]],
-                  loops: list[tuple[int, int, np.ndarray]], obs: Observations, positions: np.ndarray,
-                  depth: np.ndarray, cfg: LoopConfig) -> tuple[BAProblem, np.ndarray]:
+def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, np.ndarray, float]],
+                  obs: Observations, positions: np.ndarray, depth: np.ndarray, cfg: LoopConfig,
+                  backend_cfg: BackendConfig) -> tuple[BAProblem, np.ndarray]:
     """The global problem -> (BAProblem, landmark id of each problem point).
 
-    poses (K,4,4) T_world_cam in the order of the closer's keyframes; odometry and loop edges (i, j, T_i_j) by
-    index into poses, as `plvo.loop.closer.optimize_pose_graph` takes them; obs: point observations whose
-    `keyframe` is already an index into poses; positions (P,3) world positions of np.unique(obs.landmark);
-    depth (len(obs),) z of each observation or NaN.
+    poses (K,4,4) T_world_cam in the order of the closer's keyframes; edges (i, j, T_i_j, zeta) by index into
+    poses: relative-pose factors with information zeta x the back end's (`edge_weights` says which zeta);
+    obs: point observations whose `keyframe` is already an index into poses; positions (P,3) world positions of
+    np.unique(obs.landmark); depth (len(obs),) z of each observation or NaN.
 
     Observations further than cfg.global_ba_max_px from their landmark's projection are left out: the map holds
-    some gross ones (landmarks refined while a keyframe that saw them was not in the window), and 0.1 px factors
-    with a Huber kernel still let a few hundred 50-px residuals drag the keyframes of a turn by metres.
+    some gross ones (where tracking was lost and re-initialised), and 0.1 px factors with a Huber kernel still
+    let a few hundred 50-px residuals drag the keyframes of a turn by metres.
     """
     lm_ids, idx = np.unique(obs.landmark, return_inverse=True)
     positions = np.asarray(positions, float)
     keep = reprojection_errors(K, poses, positions[idx], obs.keyframe, obs.measurement) <= cfg.global_ba_max_px
     keep &= np.bincount(idx[keep], minlength=len(lm_ids))[idx] >= 2  # one view left: nothing to adjust
     used, pt_idx = np.unique(idx[keep], return_inverse=True)
-    # One weight for all edges: the pose graph's odometry sigmas; a loop edge scales it by (odom / loop)^2.
-    weight = np.r_[np.full(3, cfg.odom_sigma_trans ** -2), np.full(3, cfg.odom_sigma_rot ** -2)]
-    loop_zeta = (cfg.odom_sigma_trans / cfg.loop_sigma_trans) ** 2
-    edges = list(odometry) + list(loops)
-    zeta = np.r_[np.ones(len(odometry)), np.full(len(loops), loop_zeta)]
-    log.debug("global BA: %d keyframes, %d odometry and %d loop edges, %d points, %d of %d observations kept",
-              len(poses), len(odometry), len(loops), len(used), int(keep.sum()), len(keep))
+    weight = np.r_[np.full(3, backend_cfg.sigma_relative_pose ** -2),
+                   np.full(3, np.radians(backend_cfg.sigma_relative_rotation_deg) ** -2)]
+    log.debug("global BA: %d keyframes, %d edges, %d points, %d of %d observations kept", len(poses), len(edges),
+              len(used), int(keep.sum()), len(keep))
     problem = BAProblem(
         K=np.asarray(K, float), T_world_cam=np.asarray(poses, float), fixed=np.arange(len(poses)) == 0,
         points=positions[used], pt_kf=np.asarray(obs.keyframe, int)[keep], pt_idx=pt_idx,
         pt_uv=np.asarray(obs.measurement, float)[keep], pt_depth=np.asarray(depth, float)[keep],
-        rel_ij=np.array([(i, j) for i, j, _ in edges], int).reshape(-1, 2),
-        rel_T=np.array([T for _, _, T in edges], float).reshape(-1, 4, 4), rel_zeta=zeta, rel_weight=weight,
+        rel_ij=np.array([(i, j) for i, j, _, _ in edges], int).reshape(-1, 2),
+        rel_T=np.array([T for _, _, T, _ in edges], float).reshape(-1, 4, 4),
+        rel_zeta=np.array([z for *_, z in edges], float), rel_weight=weight,
     )
     return problem, lm_ids[used]
+
+
+def pose_graph_zeta(cfg: LoopConfig, backend_cfg: BackendConfig) -> float:
+    """Information scale of the pose graph's odometry edge against the back end's relative-pose factor (~1e-4)."""
+    return (backend_cfg.sigma_relative_pose / cfg.odom_sigma_trans) ** 2
 
 
 def reprojection_errors(K: np.ndarray, poses: np.ndarray, points: np.ndarray, kf: np.ndarray,

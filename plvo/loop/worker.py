@@ -56,6 +56,8 @@ class LoopWorker(KeyframeWorker):
         self.loop_edges: list[tuple[int, int]] = []  # (match, query) keyframe ids of accepted loops
         self.last_global_ba = None  # BAResult of the latest global bundle adjustment
         self.global_ba_rejected = 0
+        # () -> [(kf i, kf j, T_i_j, zeta)]: the back end's registration factors (set by the System), or None
+        self.registration_edges = None
         super().__init__(threaded=config.backend.concurrent)
 
     def process(self, kf: KeyframeInfo) -> LoopOutcome | None:
@@ -105,7 +107,7 @@ class LoopWorker(KeyframeWorker):
         """Bundle-adjust all keyframes and the points two of them see (global_ba.py), write the result back."""
         ids, _ = self.closer.poses()
         poses = np.stack([self.map.keyframe_pose(int(k)) for k in ids])  # with the landmarks' current frame
-        odometry, loops = self.closer.pose_graph_edges()
+        edges = self._edges(ids)
         obs = self.map.point_observations()
         keep = np.isin(obs.keyframe, ids)
         counts = np.bincount(obs.landmark[keep], minlength=int(obs.landmark.max(initial=-1)) + 1)
@@ -122,8 +124,8 @@ class LoopWorker(KeyframeWorker):
         row = np.searchsorted(ids, obs.keyframe)
         obs = dataclasses.replace(obs, keyframe=row)
         positions = self.map.point_positions(np.unique(obs.landmark))
-        problem, pt_ids = global_ba.build_problem(self.K, poses, odometry, loops, obs, positions, depth,
-                                                   self.cfg.loop)
+        problem, pt_ids = global_ba.build_problem(self.K, poses, edges, obs, positions, depth, self.cfg.loop,
+                                                   self.cfg.backend)
         res = global_ba.optimize(problem, self.cfg.backend, self.cfg.loop, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
         used = res.point_used
@@ -135,6 +137,20 @@ class LoopWorker(KeyframeWorker):
         self._write(ids, res.T_world_cam, pt_ids[used], res.points[used])
         self.closer.update_poses(ids, res.T_world_cam)
         self.last_global_ba = res
+
+    def _edges(self, ids: np.ndarray) -> list[tuple[int, int, np.ndarray, float]]:
+        """Relative-pose edges (i, j, T_i_j, zeta) by index into ids for the global BA: the back end's
+        registrations where it provides them, else the pose graph's odometry; every loop edge with zeta 1."""
+        odometry, loops = self.closer.pose_graph_edges()
+        weak = global_ba.pose_graph_zeta(self.cfg.loop, self.cfg.backend)
+        edges = [(i, j, T, weak) for i, j, T in odometry]
+        if self.registration_edges is not None:
+            row = {int(k): n for n, k in enumerate(ids)}
+            registered = [(row[i], row[j], T, z) for i, j, T, z in self.registration_edges()
+                          if i in row and j in row and z > 0]
+            have = {(i, j) for i, j, _, _ in registered}
+            edges = registered + [e for e in edges if (e[0], e[1]) not in have]
+        return edges + [(i, j, T, 1.0) for i, j, T in loops]
 
     def _write(self, ids: np.ndarray, after: np.ndarray, point_ids: np.ndarray | None = None,
                point_positions: np.ndarray | None = None) -> int:
