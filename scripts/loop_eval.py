@@ -7,7 +7,7 @@ back. Precision: accepted loops joining a true revisit / accepted loops. Recall:
 consecutive revisiting keyframes) with at least one accepted loop / passages; and keyframes within cooldown
 reach of an accepted loop / revisiting keyframes. Errors: ATE (SE(3)-aligned RMSE) and end-point error of cam0.
 
-    .venv/bin/python scripts/loop_eval.py --root /work/data/town --seq 20 21 22 --out results/loops.json
+    .venv/bin/python scripts/loop_eval.py --root data/town --seq 21 22 --only-loop 20 --out results/loops.json
 """
 
 from __future__ import annotations
@@ -95,8 +95,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seq", nargs="+", required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS),
+                    help="for every --seq; --only-loop SEQ runs just the default setting on SEQ")
+    ap.add_argument("--only-loop", nargs="*", default=[], metavar="SEQ",
+                    help="sequences to run with the default setting only (e.g. one that never revisits)")
     a = ap.parse_args(argv)
-    jobs = [(a.root, s, k) for s in a.seq for k in SETTINGS]
+    jobs = [(a.root, s, k) for s in a.seq for k in a.settings]
+    jobs += [(a.root, s, "pose_graph_global_ba") for s in a.only_loop]
     with ProcessPoolExecutor(a.workers) as pool:
         results = list(pool.map(_run, *zip(*jobs)))
     tmp = a.out + ".tmp"

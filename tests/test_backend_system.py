@@ -113,9 +113,9 @@ def _rel_err(gt: np.ndarray, est: np.ndarray, stride: int) -> float:
 
 
 def test_back_end_beats_odometry_alone(runs):
-    """Relative-pose errors 3, 10 and 20 frames (3, 10, 20 m) apart. Measured (before issue 8's fix of the map's
-    rigid poses): odometry 19.6 / 38.6 / 65.5 mm, full
-    16.4 / 22.4 / 39.7 mm (the registration fixes the drift the tracker accumulates over keyframes)."""
+    """Relative-pose errors 3, 10 and 20 frames (3, 10, 20 m) apart. Measured: odometry 19.6 / 38.6 / 65.5 mm, full
+    13.8 / 21.2 / 36.6 mm (16.4 / 22.4 / 39.7 before the map kept its poses rigid, issue 8); the registration
+    fixes the drift the tracker accumulates over keyframes."""
     gt = runs["gt"]
     for stride, margin in ((3, 1.0), (10, 0.75), (20, 0.75)):
         odo, full = _rel_err(gt, runs["odometry"], stride), _rel_err(gt, runs["full"], stride)

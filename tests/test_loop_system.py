@@ -103,6 +103,9 @@ def test_loop_is_closed_and_end_point_error_falls(run):
     # reported in issue 9; it also drops the first bundle adjustment of every keyframe frame).
     later = np.setdiff1d(np.arange(fq + 1, len(err)), [r.frame_index for r in accepted])
     assert err[later].max() < 0.1, err[later].max()  # measured 0.045 m (0.017 m at the last frame)
+    # The global bundle adjustment ran after each correction (its result is in the map the errors above read).
+    gba = np.asarray(out.timings["loop_global_ba"])
+    assert (gba > 0).sum() == len(accepted), gba[gba > 0]
 
 
 def test_no_loop_before_the_revisit(run):
