@@ -217,6 +217,9 @@ ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
     "no_depth_priors": {"tracking": {"use_depth_priors": False}},
     "no_scale_correction": {"backend": {"scale_correction": False}},
     "points_only": {"tracking": {"points_only": True}},
+    # Not one of the paper's: the frame-to-frame tracker alone (no back end, no loop closing), the baseline the
+    # back-end issue (8) asks the full system to beat.
+    "tracker_only": {"backend": {"enabled": False}, "loop": {"enabled": False}},
 }
 
 

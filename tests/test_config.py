@@ -72,11 +72,13 @@ def test_missing_and_invalid_files(tmp_path):
 
 def test_ablations_change_what_they_say():
     base = SystemConfig()
-    assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only"}
+    assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only", "tracker_only"}
     assert with_ablation(base, "full") == base
     assert with_ablation(base, "no_depth_priors").tracking.use_depth_priors is False
     assert with_ablation(base, "no_scale_correction").backend.scale_correction is False
     assert with_ablation(base, "points_only").tracking.points_only is True
+    alone = with_ablation(base, "tracker_only")
+    assert alone.backend.enabled is False and alone.loop.enabled is False and alone.tracking == base.tracking
     with pytest.raises(ConfigError, match="unknown ablation"):
         with_ablation(base, "nope")
 

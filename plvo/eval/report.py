@@ -40,6 +40,7 @@ LABELS = {
     "no_depth_priors": "Ours (-)",
     "no_scale_correction": "Ours (#)",
     "points_only": "Point-only",
+    "tracker_only": "Tracker only",
     KISS_SETTING: "KISS-ICP",
 }
 
