@@ -102,6 +102,7 @@ class TrackingConfig:
     # A solution with fewer inliers than this share of the last frame's is checked against matching without the
     # motion model (frontend.py); 0 disables.
     weak_inlier_share: float = 0.4
+    rescue_yaw_deg: tuple[float, ...] = (6.0, -6.0, 12.0, -12.0)  # motion-model yaw offsets a rescue also tries
     ransac_reproj_px: float = 2.0
     ransac_line_px: float = 2.0
     ransac_iterations: int = 1000
@@ -236,6 +237,12 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
             if not isinstance(value, dict):
                 raise ConfigError(f"config key '{name}' must be a table")
             kwargs[key] = _from_dict(want, value, f"{name}.")
+            continue
+        if typing.get_origin(want) is tuple:  # a list of numbers in TOML
+            if not isinstance(value, (list, tuple)) or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                raise ConfigError(f"config key '{name}' must be a list of numbers, got {value!r}")
+            kwargs[key] = tuple(float(v) for v in value)
             continue
         if want is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)

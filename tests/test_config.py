@@ -52,6 +52,8 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ("orb = 3\n", "orb"),
         ("[orb]\nn_features = 'many'\n", "orb.n_features"),
         ("[tracking]\npoints_only = 1\n", "tracking.points_only"),
+        ("[tracking]\nrescue_yaw_deg = ['a']\n", "tracking.rescue_yaw_deg"),
+        ("[tracking]\nrescue_yaw_deg = 6\n", "tracking.rescue_yaw_deg"),
     ],
 )
 def test_bad_keys_are_named(tmp_path, text, key):
