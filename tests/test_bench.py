@@ -116,3 +116,18 @@ def test_bad_stage_name_is_one_line_error(tmp_path, capsys):
     assert main(["bench", "--root", str(tmp_path), "--stages", "features,warp"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "warp" in err and "\n" not in err
+
+
+def test_loop_correction_figures_count_only_corrections():
+    """The loop worker times every keyframe; the correction stages are zero unless a loop was accepted, and their
+    figures are over the corrections alone (none at all on a sequence without a revisit)."""
+    from plvo.eval.bench import SystemRun, system_stages
+
+    timings = {"loop_query": [0.001, 0.002, 0.003], "loop_correct": [0.0, 0.004, 0.0],
+               "loop_global_ba": [0.0, 0.5, 0.0], "loop_apply": [0.0, 0.0, 0.0]}
+    run = SystemRun(False, 3, 1.0, 1.0, 3, 0, (0.0,), (0.0,), {}, [], timings)
+    out = system_stages([run])
+    assert out["loop_query"]["n"] == 3 and out["loop_query"]["median_ms"] == pytest.approx(2.0)
+    assert out["loop_correct"]["n"] == 1 and out["loop_correct"]["median_ms"] == pytest.approx(4.0)
+    assert out["loop_global_ba"]["median_ms"] == pytest.approx(500.0)
+    assert out["loop_apply"]["n"] == 0 and out["loop_apply"]["median_ms"] is None

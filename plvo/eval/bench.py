@@ -335,8 +335,15 @@ def system_stages(runs: Sequence[SystemRun]) -> dict[str, dict]:
     for run in runs:
         pooled["matching_pnpl"].extend(f["matching"] + f.get("pnpl", 0.0) for f in run.per_frame if "matching" in f)
     names = ("pnpl", "matching_pnpl", "scale_correction", "bundle_adjustment", "scale_correction_ba", "backend",
-             "loop_query", "loop_verify", "loop_correct", "loop")
+             "loop_query", "loop_verify", "loop_correct", "loop_apply", "loop_global_ba", "loop")
+    for n in CORRECTION_STAGES:  # timed every keyframe, but they only work after an accepted loop
+        pooled[n] = [v for v in pooled.get(n, []) if v > 0]
     return {n: stage_stats(pooled.get(n, []), BUDGET_MS.get(n), "system") for n in names}
+
+
+# Per-keyframe loop timings that are zero unless a loop was accepted: their figures are over the corrections only
+# (none on a sequence without a revisit: `plvo bench --root R --seq S --stages loop` on one with a loop).
+CORRECTION_STAGES = ("loop_correct", "loop_apply", "loop_global_ba")
 
 
 def system_figures(off: Sequence[SystemRun], on: Sequence[SystemRun]) -> dict:
