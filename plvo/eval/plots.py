@@ -86,6 +86,16 @@ def _two_panels(title: str, xlabel: str):
     return fig, axes
 
 
+def _log_if_spread(axes) -> None:
+    """A log y axis on panels whose curves span more than 20x: one failing method (KISS-ICP on the synthetic
+    town, ~100 %) would otherwise flatten every other curve onto zero."""
+    for ax in axes:
+        y = np.concatenate([line.get_ydata() for line in ax.get_lines()] or [np.zeros(0)]).astype(float)
+        y = y[np.isfinite(y) & (y > 0)]
+        if len(y) and y.max() > 20 * y.min():
+            ax.set_yscale("log")
+
+
 def plot_error_by_length(report: Report, path: Path) -> Path:
     """Mean translation and rotation error per segment length, one line per setting."""
     segs, lengths, what = _segments(report)
@@ -97,6 +107,7 @@ def plot_error_by_length(report: Report, path: Path) -> Path:
         label = LABELS.get(setting, setting)
         axes[0].plot(lengths, t, "o-", label=label)
         axes[1].plot(lengths, r, "o-", label=label)
+    _log_if_spread(axes)
     axes[0].legend(fontsize=8)
     return save_figure(fig, path)
 
@@ -112,6 +123,7 @@ def plot_error_by_speed(report: Report, path: Path) -> Path:
         label = LABELS.get(setting, setting)
         axes[0].plot(SPEED_BINS_MPS[keep] * 3.6, t[keep], "o-", label=label)
         axes[1].plot(SPEED_BINS_MPS[keep] * 3.6, r[keep], "o-", label=label)
+    _log_if_spread(axes)
     axes[0].legend(fontsize=8)
     return save_figure(fig, path)
 
