@@ -3,8 +3,9 @@
 Per stage (stable names): features (ORB + LSD + repair + LBD) and its parts features_orb, features_lsd,
 features_repair, features_lbd, features_1241x376 (the budget's image size), matching, depth, registration,
 measured on their own; pnpl, matching_pnpl, scale_correction, bundle_adjustment, scale_correction_ba, backend,
-loop_query, loop_verify, loop_correct, loop, as the System records them in a whole run. Each has n, median_ms,
-p90_ms, mean_ms, max_ms and the design's budget with within_budget (median). The whole system: frames a second
+loop_query, loop_verify, loop_correct, loop_apply, loop_global_ba, loop, as the System records them in a whole
+run (the loop correction stages over accepted loops only: bench a sequence with a revisit for them). Each has n,
+median_ms, p90_ms, mean_ms, max_ms and the design's budget with within_budget (median). The whole system: frames a second
 with recording off and with a Rerun recording on (the overhead in %, .rrd bytes a frame); peak memory; the
 machine, its load average and thread settings, library versions, git revision and command line.
 
