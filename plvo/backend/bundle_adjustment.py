@@ -240,9 +240,11 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
     return b
 
 
-def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok, ln_obs_ok) -> dict[str, np.ndarray]:
-    pt = np.flatnonzero(pt_ok[problem.pt_idx] & pt_obs_ok)
-    ln = np.flatnonzero(ln_ok[problem.ln_idx] & ln_obs_ok)
+def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok=None, ln_obs_ok=None) -> dict[str, np.ndarray]:
+    """Observation rows of the used landmarks (and of the observations kept, when masks are given)."""
+    pt_use, ln_use = pt_ok[problem.pt_idx], ln_ok[problem.ln_idx]
+    pt = np.flatnonzero(pt_use if pt_obs_ok is None else pt_use & pt_obs_ok)
+    ln = np.flatnonzero(ln_use if ln_obs_ok is None else ln_use & ln_obs_ok)
     depth = problem.pt_depth[pt] if use_depth_priors else np.full(len(pt), np.nan)
     prior = problem.ln_prior[ln] if use_depth_priors else np.full((len(ln), 2, 3), np.nan)
     i, j = problem.rel_ij[:, 0], problem.rel_ij[:, 1]
