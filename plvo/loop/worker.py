@@ -6,12 +6,15 @@ correction. The corrected keyframe poses are written into the shared map; every 
 keyframe that created it, and keyframes the tracker made meanwhile move with the newest corrected one. The
 tracker follows through its re-anchoring on the last keyframe. After a correction a GraphResult with the corrected
 keyframe trajectory, its odometry chain and the loop edges goes to the recorders; timings: loop_bow, loop_query,
-loop_verify, loop_correct (pose graph), loop_apply (map update), loop (all), seconds, one entry a keyframe.
+loop_verify, loop_correct (pose graph), loop_apply (map update), loop_global_ba, loop (all), seconds, one entry a
+keyframe (the three correction stages are 0 where no loop was accepted).
 
 After the pose graph, a global bundle adjustment (plvo.loop.global_ba) refines every keyframe pose and every
-point landmark two keyframes see, on the pose graph's edges plus the point factors; points it did not adjust and
-all lines move rigidly with the keyframe that created them (timing loop_global_ba). `loop.global_ba = false`
-stops after the pose graph.
+point landmark two keyframes see, on the back end's registration factors (`registration_edges`, set by the
+System; the pose graph's odometry where there are none) and the loop edges plus the point factors; points it did
+not adjust and all lines move rigidly with the keyframe that created them. It holds the GIL while gtsam builds and
+solves the graph (0.5-2 s a loop at 150-290 keyframes), so a concurrent tracker slows meanwhile.
+`loop.global_ba = false` stops after the pose graph.
 
 With `backend.concurrent` the back end may be optimising a window read before the correction and write it back
 afterwards; it rebases that window on its first keyframe's corrected pose, so the correction survives, but the
