@@ -50,9 +50,9 @@ class _Collect:
 def _run(root: str, seq: str, setting: str) -> dict:
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.eval.kitti_metric import absolute_trajectory_error
+    from plvo.eval.kitti_metric import evaluate_sequence
     from plvo.eval.revisits import revisits as true_revisits
-    from plvo.eval.tasks import anchor
+    from plvo.eval.tasks import anchor, metrics_dict
     from plvo.system import run_dataset
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": SETTINGS[setting]})
@@ -61,9 +61,8 @@ def _run(root: str, seq: str, setting: str) -> dict:
     out = run_dataset(ds, cfg, rec)
     gt = ds.gt_T_world_cam
     est = anchor(out.poses, gt[0])
-    ate = absolute_trajectory_error(gt, est)
-    end = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
-    res = {"sequence": seq, "setting": setting, "ate_m": ate.rmse_m, "end_point_m": end,
+    metrics = metrics_dict(evaluate_sequence(gt, est), gt, est)
+    res = {"sequence": seq, "setting": setting, "ate_m": metrics["ate_m"], "end_point_m": metrics["final_drift_m"],
            "n_keyframes": out.n_keyframes, "n_lost": out.n_lost,
            # medians over the keyframes where the stage ran (a correction step runs only after a loop)
            "timings_ms": {k: float(1e3 * np.median(np.asarray(v)[np.asarray(v) > 0])) for k, v in out.timings.items()
@@ -100,14 +99,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only-loop", nargs="*", default=[], metavar="SEQ",
                     help="sequences to run with the default setting only (e.g. one that never revisits)")
     a = ap.parse_args(argv)
+    from plvo.atomic import write_text_atomic
+
     jobs = [(a.root, s, k) for s in a.seq for k in a.settings]
     jobs += [(a.root, s, "pose_graph_global_ba") for s in a.only_loop]
     with ProcessPoolExecutor(a.workers) as pool:
         results = list(pool.map(_run, *zip(*jobs)))
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(results, f, indent=1)
-    os.replace(tmp, a.out)
+    write_text_atomic(a.out, json.dumps(results, indent=1))
     for r in results:
         print(json.dumps({k: v for k, v in r.items() if k != "accepted"}))
     return 0

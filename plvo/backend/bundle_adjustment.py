@@ -345,8 +345,8 @@ def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.nd
 
 
 def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, baseline):
-    """LM from state over the selected observations -> (state, initial cost, cost, iterations, pt_ok, ln_ok);
-    landmarks the window cannot determine are dropped first (pt_ok / ln_ok are copies)."""
+    """LM from state over the selected observations (pt_obs_ok / ln_obs_ok masks, None: all) -> (state, initial
+    cost, cost, iterations, pt_ok, ln_ok); landmarks the window cannot determine are dropped first (copies)."""
     pt_ok, ln_ok = pt_ok.copy(), ln_ok.copy()
     for attempt in range(3):  # drop landmarks the window cannot determine, then build again
         lay = _Layout(problem, pt_ok, ln_ok)
@@ -392,11 +392,10 @@ def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs
 def _outliers(problem, state, origin, pt_ok, ln_ok, cfg, use_depth_priors, baseline) -> tuple[np.ndarray, np.ndarray]:
     """-> (O,) and (M,) bool: point / line observations of used landmarks whose residual (all rows, in the
     factor's units: pixels, and metres for a line's prior row) exceeds cfg.outlier_px at `state`."""
-    all_pt, all_ln = np.ones(len(problem.pt_idx), bool), np.ones(len(problem.ln_idx), bool)
     lay = _Layout(problem, pt_ok, ln_ok)
-    sel = _select(problem, pt_ok, ln_ok, use_depth_priors, all_pt, all_ln)
+    sel = _select(problem, pt_ok, ln_ok, use_depth_priors)
     sel.update(origin=origin, rel=sel["rel"][:0])
-    bad_pt, bad_ln = np.zeros(len(all_pt), bool), np.zeros(len(all_ln), bool)
+    bad_pt, bad_ln = np.zeros(len(problem.pt_idx), bool), np.zeros(len(problem.ln_idx), bool)
     only_points = {**sel, "ln": sel["ln"][:0], "prior": sel["prior"][:0]}
     only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0]}
     for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
@@ -426,9 +425,8 @@ def optimize(
         origin[ln_ok] = o
         U[ln_ok], W[ln_ok] = plucker_to_orth(plucker_from_points(problem.lines[ln_ok, 0] - o, problem.lines[ln_ok, 1] - o))
     state = (T_cw, pts, U, W)
-    pt_obs_ok, ln_obs_ok = np.ones(len(problem.pt_idx), bool), np.ones(len(problem.ln_idx), bool)
     state, initial_cost, cost, it, pt_ok, ln_ok = _levenberg_marquardt(
-        problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, stereo_baseline_m)
+        problem, state, origin, pt_ok, ln_ok, None, None, cfg, use_depth_priors, stereo_baseline_m)
     if cfg.outlier_px > 0:
         # ORB-SLAM2's two rounds: observations still far off after the first are wrong associations (a facade's
         # repeated windows matched one period off); left in, thousands of them pull the keyframes together.

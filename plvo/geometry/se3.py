@@ -150,17 +150,9 @@ def orthonormalize_batch(T: np.ndarray) -> np.ndarray:
     U[flip, :, -1] *= -1
     out = T.copy()
     out[:, :3, :3] = U @ Vt
-    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """Project the rotation block back onto SO(3) (poses read from text drift off it)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    out = T.copy()
-    out[:3, :3] = R
-    return out
+    return orthonormalize_batch(np.asarray(T, float)[None])[0]

@@ -33,6 +33,7 @@ from plvo.backend.factors import optimize_gtsam
 from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.relpose import inv_batch
 from plvo.config import BackendConfig, LoopConfig
+from plvo.geometry.camera import project
 from plvo.tracking.map import Observations
 
 log = logging.getLogger(__name__)
@@ -81,11 +82,9 @@ def reprojection_errors(K: np.ndarray, poses: np.ndarray, points: np.ndarray, kf
                         uv: np.ndarray) -> np.ndarray:
     """(K,4,4) T_world_cam, (N,3) world points, (N,) keyframe index, (N,2) px -> (N,) pixel errors (inf behind)."""
     T_cw = inv_batch(np.asarray(poses, float))[np.asarray(kf, int)]
-    Xc = np.einsum("nij,nj->ni", T_cw[:, :3, :3], points) + T_cw[:, :3, 3]
-    z = Xc[:, 2]
-    proj = (Xc @ np.asarray(K, float).T)[:, :2] / np.where(z > 1e-6, z, 1.0)[:, None]
+    proj, _ = project(np.asarray(K, float), np.einsum("nij,nj->ni", T_cw[:, :3, :3], points) + T_cw[:, :3, 3])
     err = np.linalg.norm(proj - uv, axis=1)
-    return np.where(z > 1e-6, err, np.inf)
+    return np.where(np.isfinite(err), err, np.inf)
 
 
 def optimize(problem: BAProblem, backend_cfg: BackendConfig, loop_cfg: LoopConfig, use_depth_priors: bool,

@@ -168,7 +168,7 @@ class Frontend:
             # begins or ends: 4-9 deg of yaw a frame more than predicted, ~100 px) and the few predicted matches
             # may fit a wrong pose (2.7 m off at a synthetic turn). Match again without prediction; keep the better.
             t = time.perf_counter()
-            alt, alt_corr = self._unpredicted(prev, feats)
+            alt, alt_corr = self._match_and_solve(prev, feats, None)
             timings["rescue"] = time.perf_counter() - t
             if alt.success and alt.n_inliers > sol.n_inliers:
                 log.info("frame %d: %d inliers with the motion model, %d without it: took the latter", frame.index,
@@ -324,23 +324,21 @@ class Frontend:
         # for a pose 2.6 m off (synthetic town, 12.5 m/s, yaw 4 -> 9 deg a frame). Without a prediction the
         # ratio test starves on repeated facades (8 matches at a synthetic turn, tracking lost), so the motion
         # model is also tried turned by a few yaw steps about the camera's vertical axis.
-        tries = [self._unpredicted(prev, feats)]
-        for deg in self.cfg.tracking.rescue_yaw_deg:
-            T_try = T_pred @ _yaw(np.radians(deg))
-            pm, lm = self._match(prev, feats, T_try)
-            c = self._correspondences(prev, feats, pm, lm)
-            tries.append((solve_pnpl(self.K, c["pts"], c["uv"], c["lines"], c["segs"], T_try, self.cfg.tracking), c))
+        tries = [self._match_and_solve(prev, feats, None)]
+        tries += [self._match_and_solve(prev, feats, T_pred @ _yaw(np.radians(deg)))
+                  for deg in self.cfg.tracking.rescue_yaw_deg]
         for sol_try, c in tries:
             if sol_try.success and (not sol.success or sol_try.n_inliers > sol.n_inliers):
                 sol, wide = sol_try, c
         timings["rescue"] = time.perf_counter() - t
         return sol, wide
 
-    def _unpredicted(self, prev: _FrameState, feats: FeatureSet):
-        """Match the previous frame without a motion prediction and solve -> (PnPLResult, correspondences)."""
-        pm, lm = self._match(prev, feats, None)
-        free = self._correspondences(prev, feats, pm, lm)
-        return solve_pnpl(self.K, free["pts"], free["uv"], free["lines"], free["segs"], None, self.cfg.tracking), free
+    def _match_and_solve(self, prev: _FrameState, feats: FeatureSet, T_guess: np.ndarray | None):
+        """Match the previous frame predicted by T_guess (None: without a prediction) and solve from it ->
+        (PnPLResult, correspondences)."""
+        pm, lm = self._match(prev, feats, T_guess)
+        c = self._correspondences(prev, feats, pm, lm)
+        return solve_pnpl(self.K, c["pts"], c["uv"], c["lines"], c["segs"], T_guess, self.cfg.tracking), c
 
     def _reanchor_to_map(self) -> None:
         """Follow the back end: when it moved the last keyframe, move the previous frame's pose rigidly with it."""
