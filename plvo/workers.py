@@ -31,6 +31,10 @@ class KeyframeWorker:
             self._thread = threading.Thread(target=self._run, name=f"plvo-{self.name}", daemon=True)
             self._thread.start()
 
+    @property
+    def threaded(self) -> bool:
+        return self._thread is not None
+
     def process(self, kf: Any) -> None:
         raise NotImplementedError
 

@@ -74,10 +74,14 @@ def test_missing_and_invalid_files(tmp_path):
 
 def test_ablations_change_what_they_say():
     base = SystemConfig()
-    assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only", "tracker_only"}
+    assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only", "tracker_only",
+                              "no_scale_step"}
     assert with_ablation(base, "full") == base
     assert with_ablation(base, "no_depth_priors").tracking.use_depth_priors is False
-    assert with_ablation(base, "no_scale_correction").backend.scale_correction is False
+    module_off = with_ablation(base, "no_scale_correction").backend
+    assert module_off.scale_correction is False and module_off.registration is False and module_off.enabled
+    step_off = with_ablation(base, "no_scale_step").backend
+    assert step_off.scale_correction is False and step_off.registration is True
     assert with_ablation(base, "points_only").tracking.points_only is True
     alone = with_ablation(base, "tracker_only")
     assert alone.backend.enabled is False and alone.loop.enabled is False and alone.tracking == base.tracking

@@ -41,6 +41,7 @@ LABELS = {
     "no_scale_correction": "Ours (#)",
     "points_only": "Point-only",
     "tracker_only": "Tracker only",
+    "no_scale_step": "No scale step",
     KISS_SETTING: "KISS-ICP",
 }
 
