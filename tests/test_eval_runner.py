@@ -76,7 +76,8 @@ def _drifting(scale: float):
 
 def test_ablation_columns_failures_and_resume(boxes_root, tmp_path, monkeypatch):
     """In-process fan-out with a stand-in for plvo (ground truth scaled by 1.02): every ablation is a column,
-    KISS-ICP the last; a failing setting is recorded, not raised; --resume keeps finished folders."""
+    KISS-ICP the last; a failing setting is recorded, not raised; --resume keeps finished folders unless their
+    configuration changed."""
     monkeypatch.setitem(tasks.METHODS, "plvo", _drifting(1.02))
     sources = [SequenceSource(str(boxes_root), "a"), SequenceSource(str(boxes_root), "b", frames="0:20")]
     specs = build_specs(sources, ["full", "no_depth_priors", "no_scale_correction", "points_only"], kiss=True)
@@ -99,6 +100,11 @@ def test_ablation_columns_failures_and_resume(boxes_root, tmp_path, monkeypatch)
     again = execute(specs[:4] + specs[5:], tmp_path, workers=1, resume=True)  # finished ones kept
     assert all(r.ok for r in again)
     assert {p: p.stat().st_mtime_ns for p in tmp_path.glob("runs/kiss/*/result.json")} == mtimes
+    # a run whose configuration is not what its ablation means now (an older version's) is not resumed
+    used = tmp_path / "runs" / "no_scale_correction" / "a" / "config.toml"
+    used.write_text(used.read_text().replace("registration = false", "registration = true", 1))
+    stale = execute([specs[2]], tmp_path, workers=1, resume=True)
+    assert stale[0].status == "failed" and "stage X exploded" in stale[0].error
     failed = execute([specs[0]], tmp_path, workers=1)  # not resumed: rerun, fails, replaces the folder
     assert failed[0].status == "failed" and "stage X exploded" in failed[0].error
     assert not (tmp_path / "runs" / "full" / "a" / "poses.txt").exists()

@@ -13,6 +13,12 @@ sigma the relative-pose factor weighed ~1e-3 of the 0.1 px reprojection factors,
 and only added noise (1.22 / 1.12 / 1.04 % vs odometry's 1.05 / 0.90 / 0.84 %). With 0.5 mm / 0.5 mrad the BA
 follows the registration's scale (0.73 / 0.57 / 0.40 %; KISS-ICP 0.74 / 0.63 / 0.55 %).
 
+The scale correction runs before the bundle adjustment, as in the paper; in the concurrent back end its result
+is written into the map at once, so the tracker has the corrected keyframe while the adjustment runs. Inline
+(`concurrent = False`) the adjustment follows before the next frame and, weighing the same registration factor,
+fixes the scale itself: there the step only gives it its start (ablation no_scale_step). Without the registration
+(`registration = False`, with the scale correction the paper's Ours (#)) there are no relative-pose factors.
+
 Thread, not process: the map is shared in memory and the heavy parts (open3d's NDT/ICP, scipy's SuperLU, numpy
 on large arrays) release the GIL, so a thread overlaps with the tracker without copying the map. With
 `BackendConfig.concurrent = False` the keyframe is processed before the tracker sees the next frame, which makes

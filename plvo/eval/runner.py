@@ -17,6 +17,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from typing import Any
 
+from plvo.config import config_to_toml
 from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions
 from plvo.eval.tasks import (  # noqa: F401  (re-exported: the runner is the public face)
@@ -31,6 +32,7 @@ from plvo.eval.tasks import (  # noqa: F401  (re-exported: the runner is the pub
     execute_task,
     load_poses,
     metrics_dict,
+    plvo_config,
     read_result,
     run_and_write,
     run_pipeline,
@@ -44,12 +46,21 @@ log = logging.getLogger(__name__)
 
 
 def _done(spec: RunSpec, out_dir: str | os.PathLike[str]) -> TaskResult | None:
-    """The finished result of the same spec in its folder, for --resume, else None."""
+    """The finished result of the same spec in its folder, for --resume, else None.
+
+    The same spec is not enough for plvo: an ablation's or a default's meaning can change between versions, so the
+    configuration the run used (its config.toml) must also equal what the spec resolves to now."""
     folder = spec.folder(out_dir)
     if not (folder / RESULT_FILE).is_file():
         return None
     try:
         result = read_result(folder)
+        if spec.method == "plvo":
+            used = folder / "config.toml"
+            if not used.is_file() or used.read_text() != config_to_toml(plvo_config(spec)):
+                log.info("%s/%s: configuration changed since the last run; running again", spec.setting,
+                         spec.source.name)
+                return None
     except PlvoError:
         return None
     return result if result.ok and result.spec == spec else None
