@@ -18,6 +18,8 @@ class Calibration:
 
     K: (3,3) intrinsics of the chosen camera. T_cam_velo: (4,4) lidar -> camera. width, height: image size (px).
     T_cam0_cam: (4,4) chosen camera -> cam0 (identity for cam0; poses are always reported for cam0).
+    lidar_elevation_offset_deg: the lidar's vertical-angle error, by which scan registration raises every return
+    (0.205 for KITTI's HDL-64E, see plvo.lidar.registration; 0 for the synthetic town).
     """
 
     K: np.ndarray
@@ -25,6 +27,7 @@ class Calibration:
     width: int
     height: int
     T_cam0_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    lidar_elevation_offset_deg: float = 0.0
 
     @property
     def fx(self) -> float:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from plvo.atomic import write_text_atomic
-from plvo.config import SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
+from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
 from plvo.errors import DatasetError, RecordingError
 from plvo.recording import FanOut, RunInfo
 
@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "default 00 with a root")
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
-    p.add_argument("--ablation", default=None, help="full, no_depth_priors, no_scale_correction, points_only or tracker_only")
+    p.add_argument("--ablation", default=None, help=f"one of {', '.join(ABLATIONS)}")
     p.add_argument("--rrd", type=Path, help="recording path; default recordings/<seq>_<time>.rrd")
     p.add_argument("--out", type=Path, help="results folder; default results/<seq>_<time>/")
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")

@@ -2,11 +2,12 @@
 get a small zeta and leave the trajectory where a good one puts it.
 
 One short synthetic town sequence (seed 0, 10 m/s) is run five times with inline workers (deterministic):
-odometry alone, the full system, the system without the scale correction module (Ours (#)), the full system with one registration corrupted (the NDT result moved 0.5 m
-and 1 deg, inside the jump gate, so it is accepted as converged), and the same corruption with the paper's printed
-zeta formula as a control (it gives the bad registration a large weight, and the trajectory follows it: the
-corruption is strong enough for the test to fail). Features and depth priors do not depend on the back end, so
-they are computed once and reused by the later runs.
+odometry alone, the full system, the system without the scale correction module (Ours (#)), the full system
+with one registration corrupted (the NDT result moved 0.5 m and 1 deg, inside the jump gate, so it is accepted
+as converged), and the same corruption with the paper's printed zeta formula as a control (it gives the bad
+registration a large weight, and the trajectory follows it: the corruption is strong enough for the test to
+fail). Features and depth priors do not depend on the back end, so they are computed once and reused by the
+later runs.
 """
 
 from __future__ import annotations

@@ -192,6 +192,11 @@ def test_fake_odometry_cameras(tmp_path):
                                @ left.calib.T_cam_velo, atol=1e-12)
     np.testing.assert_allclose(right.gt_T_world_cam[2, :3, 3], [BASELINE, 0.0, 2.0], atol=1e-12)
     np.testing.assert_allclose(left.gt_T_world_cam[2, :3, 3], [0.0, 0.0, 2.0], atol=1e-12)
+    # KITTI's HDL-64E elevation error is corrected in registration; the synthetic town's marker turns it off
+    assert left.calib.lidar_elevation_offset_deg == pytest.approx(0.205)
+    (tmp_path / "sequences" / "07" / "gt").mkdir()
+    (tmp_path / "sequences" / "07" / "gt" / "scene.json").write_text("{}")
+    assert KittiOdometry(tmp_path, "07").calib.lidar_elevation_offset_deg == 0.0
 
 
 def test_no_ground_truth_when_poses_file_absent(tmp_path):
@@ -324,6 +329,7 @@ def test_raw_drive_ground_truth_from_oxts(tmp_path):
     ds = open_dataset(tmp_path, f"{DATE}_drive_{DRIVE}")
     assert isinstance(ds, KittiRaw) and ds.name == "kitti_raw" and ds.sequence == f"{DATE}_drive_{DRIVE}"
     assert len(ds) == 4 and (ds.calib.width, ds.calib.height) == (W, H)
+    assert ds.calib.lidar_elevation_offset_deg == pytest.approx(0.205)
     np.testing.assert_allclose(ds.calib.T_cam_velo[:3, :3], R_CAM_VELO, atol=1e-12)
     np.testing.assert_allclose(ds.times, [0.0, 0.1, 0.2, 0.3], atol=1e-6)
     gt = ds.gt_T_world_cam

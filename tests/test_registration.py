@@ -10,7 +10,7 @@ import pytest
 from plvo.config import RegistrationConfig
 from plvo.errors import PlvoError
 from plvo.geometry import se3
-from plvo.lidar.registration import align, zeta_from_errors
+from plvo.lidar.registration import align, raise_elevation, zeta_from_errors
 
 
 class Seq04:
@@ -130,3 +130,37 @@ def test_prepared_scans_give_the_same_result(data):
     assert a.zeta == pytest.approx(b.zeta)
     with pytest.raises(PlvoError, match="voxel_m"):
         align(prepare(data.scan(k), cfg), data.scan(k + 3), init, dataclasses.replace(cfg, voxel_m=1.0))
+
+
+def test_raise_elevation_keeps_range_and_azimuth():
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-50, 50, (500, 3)), rng.uniform(0, 1, 500)].astype(np.float32)
+    pts[0] = (0.0, 0.0, 5.0, 0.3)  # straight up: no azimuth, left alone
+    out = raise_elevation(pts, 0.205)
+    assert out.dtype == np.float32 and out.shape == pts.shape and not np.shares_memory(out, pts)
+    p, q = pts[1:, :3].astype(float), out[1:, :3].astype(float)
+    elevation = lambda x: np.degrees(np.arctan2(x[:, 2], np.hypot(x[:, 0], x[:, 1])))  # noqa: E731
+    np.testing.assert_allclose(elevation(q) - elevation(p), 0.205, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), np.linalg.norm(p, axis=1), rtol=1e-6)
+    np.testing.assert_allclose(np.arctan2(q[:, 1], q[:, 0]), np.arctan2(p[:, 1], p[:, 0]), atol=1e-6)
+    np.testing.assert_array_equal(out[0], pts[0])
+    np.testing.assert_array_equal(out[:, 3], pts[:, 3])
+    assert raise_elevation(pts, 0.0) is pts
+
+
+def test_elevation_correction_removes_the_registration_pitch_bias(data):
+    """KITTI's scans sit ~0.2 deg too low: registered keyframe pairs (frames k, k+3) pitch against the ground truth
+    by -66 mdeg on average over the whole System's keyframes (plvo.lidar.registration). Here, 12 pairs from the
+    ground truth's own relative pose: mean pitch error (rotation about camera x) with and without the correction.
+    Measured: 59 mdeg without, -7 with (per-pair spread 36 mdeg either way)."""
+    pitch = {0.0: [], 0.205: []}
+    T_velo_cam = se3.inv(data.Tr)
+    for k in range(0, 48, 4):
+        gt = data.T_velo(k + 3, k)
+        for off in pitch:
+            res = align(raise_elevation(data.scan(k), off), raise_elevation(data.scan(k + 3), off), gt,
+                        RegistrationConfig(), data.Tr)
+            E_cam = data.Tr @ se3.inv(gt) @ res.T_dst_src @ T_velo_cam
+            pitch[off].append(1e3 * np.degrees(se3.so3_log(E_cam[:3, :3])[0]))
+    raw, fixed = np.mean(pitch[0.0]), np.mean(pitch[0.205])
+    assert abs(raw) > 30 and abs(fixed) < 0.4 * abs(raw), (raw, fixed)

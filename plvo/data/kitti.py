@@ -32,6 +32,10 @@ log = logging.getLogger(__name__)
 CAMERAS = (0, 1, 2, 3)  # 0/1 gray left/right, 2/3 colour left/right (converted to gray)
 RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})(?:_sync)?$")
 _OXTS_FIELDS = 30
+# KITTI's HDL-64E returns sit this far too low in elevation (see plvo.lidar.registration); the synthetic town's
+# scans, written in the odometry layout with a gt/scene.json beside them, are exact.
+KITTI_LIDAR_ELEVATION_OFFSET_DEG = 0.205
+SYNTH_MARKER = Path("gt") / "scene.json"
 
 
 def _check_camera(camera: int) -> int:
@@ -107,7 +111,7 @@ def _image_size(path: Path, frame: int) -> tuple[int, int]:
         raise DatasetError(f"{path}: unreadable image (frame {frame}): {exc}") from None
 
 
-def _calibration(calib, camera: int, width: int, height: int) -> Calibration:
+def _calibration(calib, camera: int, width: int, height: int, elevation_offset_deg: float) -> Calibration:
     """pykitti calib namedtuple -> Calibration of the chosen camera (rectified)."""
     T_cam_velo = np.asarray(getattr(calib, f"T_cam{camera}_velo"), dtype=np.float64)
     T_cam0_cam = np.eye(4)
@@ -119,6 +123,7 @@ def _calibration(calib, camera: int, width: int, height: int) -> Calibration:
         width=int(width),
         height=int(height),
         T_cam0_cam=T_cam0_cam,
+        lidar_elevation_offset_deg=float(elevation_offset_deg),
     )
 
 
@@ -236,7 +241,9 @@ class KittiOdometry(_KittiSequence):
         except (OSError, ValueError, KeyError) as exc:
             raise DatasetError(f"{seq_dir}: pykitti cannot load the sequence: {exc}") from None
         width, height = _image_size(images[selected[0]], selected[0])
-        calib = _calibration(data.calib, camera, width, height)
+        synthetic = (seq_dir / SYNTH_MARKER).is_file()
+        offset = 0.0 if synthetic else KITTI_LIDAR_ELEVATION_OFFSET_DEG
+        calib = _calibration(data.calib, camera, width, height, offset)
         gt = _odometry_gt(root / "poses" / f"{sequence}.txt", selected, calib.T_cam0_cam)
         self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt)
 
@@ -299,7 +306,7 @@ class KittiRaw(_KittiSequence):
             raise DatasetError(f"{stamps}: fewer timestamps than the {n} frames")
         data = _load_pykitti_raw(root, date, number, selected, oxts_dir)
         width, height = _image_size(images[selected[0]], selected[0])
-        calib = _calibration(data.calib, camera, width, height)
+        calib = _calibration(data.calib, camera, width, height, KITTI_LIDAR_ELEVATION_OFFSET_DEG)
         times = np.array([(t - data.timestamps[0]).total_seconds() for t in data.timestamps[1:]])
         gt = _raw_gt(data, calib.T_cam0_cam)
         self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt)

@@ -31,6 +31,7 @@ import time
 import numpy as np
 
 from plvo.config import SystemConfig
+from plvo.lidar.registration import raise_elevation
 from plvo.geometry import se3
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
@@ -53,6 +54,7 @@ class LoopWorker(KeyframeWorker):
         self.cfg = config
         self.map = landmark_map
         self.K = np.asarray(calib.K, dtype=float)
+        self.elevation_offset_deg = calib.lidar_elevation_offset_deg
         self.closer = LoopCloser(self.K, cfg=config.loop, T_cam_velo=np.asarray(calib.T_cam_velo, float),
                                  reg_cfg=config.registration)
         self.n_corrections = 0
@@ -93,13 +95,13 @@ class LoopWorker(KeyframeWorker):
 
     def _loop_keyframe(self, kf: KeyframeInfo, T_world_cam: np.ndarray) -> LoopKeyframe:
         priors = kf.depth_priors
+        scan = raise_elevation(kf.frame.scan, self.elevation_offset_deg)  # for the verification's registration
         if priors is None:  # no-depth-priors ablation: nothing metric to verify against
             f = kf.features
             return LoopKeyframe(kf.kf_id, T_world_cam, f.keypoints, f.descriptors,
                                 np.full((f.n_points, 3), np.nan), f.segments, f.line_descriptors,
-                                np.full((f.n_lines, 2, 3), np.nan), kf.frame.scan, kf.frame_index)
-        return LoopKeyframe.from_features(kf.kf_id, T_world_cam, kf.features, priors, self.K, kf.frame.scan,
-                                          kf.frame_index)
+                                np.full((f.n_lines, 2, 3), np.nan), scan, kf.frame_index)
+        return LoopKeyframe.from_features(kf.kf_id, T_world_cam, kf.features, priors, self.K, scan, kf.frame_index)
 
     def _apply(self, outcome: LoopOutcome) -> None:
         """Write the pose graph's poses into the map; move landmarks and newer keyframes rigidly along."""
