@@ -118,7 +118,7 @@ def _rel_err(gt: np.ndarray, est: np.ndarray, stride: int) -> float:
 
 def test_back_end_beats_odometry_alone(runs):
     """Relative-pose errors 3, 10 and 20 frames (3, 10, 20 m) apart. Measured: odometry 19.6 / 38.6 / 65.5 mm, full
-    14.9 / 23.7 / 40.1 mm (13.8 / 21.2 / 36.6 with a 30x looser relative-rotation sigma, which drifts over a kilometre;
+    14.9 / 23.7 / 40.1 mm (13.8 / 21.2 / 36.6 with a 95x looser relative-rotation sigma, which drifts over a kilometre;
     16.4 / 22.4 / 39.7 before the map kept its poses rigid, issue 8); the registration
     fixes the drift the tracker accumulates over keyframes."""
     gt = runs["gt"]
