@@ -220,7 +220,10 @@ def _registration_init(a: Frame, b: Frame, T_cam_velo: np.ndarray) -> tuple[np.n
 def bench_registration(frames: Sequence[Frame], cfg: SystemConfig, repeat: int = 1
                        ) -> tuple[list[float], dict]:
     """Seconds of align between consecutive stand-in keyframes (newer onto older, as the back end does)."""
-    from plvo.lidar.registration import align
+    from plvo.lidar.registration import align, raise_elevation
+
+    def scan(frame: Frame) -> np.ndarray:
+        return raise_elevation(frame.scan, frame.calib.lidar_elevation_offset_deg)
 
     seconds, converged, inits = [], 0, set()
     pos = keyframe_positions(len(frames), cfg.tracking.keyframe_every)
@@ -229,7 +232,7 @@ def bench_registration(frames: Sequence[Frame], cfg: SystemConfig, repeat: int =
         init, how = _registration_init(frames[a], frames[b], T_cv)
         inits.add(how)
         for _ in range(repeat):
-            t, res = _timed(align, frames[b].scan, frames[a].scan, init, cfg.registration, T_cv)
+            t, res = _timed(lambda: align(scan(frames[b]), scan(frames[a]), init, cfg.registration, T_cv))
             seconds.append(t)
             converged += int(res.converged)
     return seconds, {"init": ",".join(sorted(inits)), "converged": converged, "runs": len(seconds)}

@@ -84,21 +84,22 @@ class RegistrationResult:
 
 
 def raise_elevation(scan: np.ndarray, degrees: float) -> np.ndarray:
-    """(N,3|4) lidar-frame points -> a copy with every point's elevation raised by `degrees`, range unchanged
-    (KISS-ICP's correct_kitti_scan: a rotation about p x z); the scan itself when degrees is 0."""
+    """(N,3|4) lidar-frame points -> a copy with every point's elevation raised by `degrees`, range and azimuth
+    unchanged (KISS-ICP's correct_kitti_scan, a rotation about p x z); the scan itself when degrees is 0."""
     if degrees == 0.0:
         return scan
     out = np.array(scan, copy=True)
-    p = out[:, :3].astype(np.float64)
-    horizontal = np.hypot(p[:, 0], p[:, 1])
-    ok = horizontal > 1e-9  # a point straight up or down has no azimuth to keep: left as it is
+    x, y, z = out[:, 0], out[:, 1], out[:, 2]
     c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
-    # rotating p by angle a about the unit axis (p x z) / |p x z|: p cos a + (|p|^2 z - p_z p) sin a / |p x z|
-    k = np.where(ok, s / np.where(ok, horizontal, 1.0), 0.0)
-    r2 = np.einsum("ni,ni->n", p, p)
-    q = p * np.where(ok, c, 1.0)[:, None] - (k * p[:, 2])[:, None] * p
-    q[:, 2] += k * r2
-    out[:, :3] = q
+    h = np.hypot(x, y)
+    # the rotation written out: horizontal components scale by cos a - sin a z/h, z' = z cos a + h sin a; a point
+    # straight up or down (h = 0) has no azimuth to keep and is left as it is
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(h > 0, c - s * z / h, 1.0)
+    z_new = np.where(h > 0, z * c + h * s, z)
+    x *= f
+    y *= f
+    out[:, 2] = z_new
     return out
 
 
