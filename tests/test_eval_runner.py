@@ -4,6 +4,10 @@ the same files, local process fan-out, ablation columns, failed runs recorded, r
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +155,36 @@ def test_eval_run_plvo_on_two_synthetic_town_sequences_matches_metric(town_root,
             assert len(np.loadtxt(folder / "poses.txt")) == 24
             assert ref["short_t_err_pct"] < 2.0, (setting, seq, ref["short_t_err_pct"])
             assert f"{ref['short_t_err_pct']:.2f}" in md
+
+
+
+_POOL_SCRIPT = """
+import os, sys, time
+from plvo.eval.runner import worker_pool
+if __name__ == "__main__":
+    pool = worker_pool(1)
+    print(pool.submit(os.getpid).result(), flush=True)
+    pool.submit(time.sleep, 120)
+    time.sleep(120)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the workers' parent-death signal is Linux's prctl")
+def test_killed_eval_run_takes_its_workers_along(tmp_path):
+    """A `plvo eval run` killed mid-sweep must not leave its pool workers running their sequences to the end (they
+    did: two cores busy for minutes after the sweep was gone). The sweep's own pool, a worker in a long task."""
+    script = tmp_path / "sweep.py"
+    script.write_text(_POOL_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        worker = int(proc.stdout.readline())
+        time.sleep(1.0)  # the worker is inside its long task
+        assert Path(f"/proc/{worker}").exists()
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and Path(f"/proc/{worker}").exists():
+            time.sleep(0.1)
+        assert not Path(f"/proc/{worker}").exists(), "the pool worker outlived the killed sweep"
+    finally:
+        proc.kill()

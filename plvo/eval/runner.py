@@ -11,7 +11,9 @@ the results are the same TaskResults, read back from the folders (see plvo.eval.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
@@ -113,17 +115,31 @@ def execute(
 def _execute_processes(
     specs: Sequence[RunSpec], out_dir: str, workers: int, notify: Callable[[TaskResult], None]
 ) -> list[TaskResult]:
-    import multiprocessing
-
-    # spawn, not fork: kiss_icp and OpenCV start thread pools that a forked child must not inherit
-    ctx = multiprocessing.get_context("spawn")
     results: dict[int, TaskResult] = {}
-    with ProcessPoolExecutor(max_workers=min(workers, len(specs)), mp_context=ctx) as pool:
+    with worker_pool(min(workers, len(specs))) as pool:
         futures = {pool.submit(run_and_write, spec, out_dir): k for k, spec in enumerate(specs)}
         for future in as_completed(futures):
             results[futures[future]] = future.result()
             notify(results[futures[future]])
     return [results[k] for k in range(len(specs))]
+
+
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """The local process pool of a sweep."""
+    # spawn, not fork: kiss_icp and OpenCV start thread pools that a forked child must not inherit
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_die_with_parent)
+
+
+def _die_with_parent() -> None:
+    """In a pool worker: end when the `plvo eval run` process does. A killed parent otherwise leaves its workers
+    finishing their sequences (minutes of two cores each), writing into a folder nobody reads any more."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
 
 
 def _execute_ray(
