@@ -10,7 +10,8 @@ import pytest
 from plvo.config import RegistrationConfig
 from plvo.errors import PlvoError
 from plvo.geometry import se3
-from plvo.lidar.registration import align, raise_elevation, zeta_from_errors
+from plvo.lidar.registration import align, zeta_from_errors
+from plvo.lidar.scan import raise_elevation
 
 
 class Seq04:

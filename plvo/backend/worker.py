@@ -42,7 +42,7 @@ from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import SystemConfig
 from plvo.geometry import se3
-from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare, raise_elevation
+from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
 from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, GraphResult, MapResult, MetricsResult
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
@@ -110,8 +110,8 @@ class Backend(KeyframeWorker):
         registering = self.cfg.backend.registration
         self._kfs[kf.kf_id] = _KfData(
             kf.frame_index,
-            prepare(raise_elevation(kf.frame.scan, self.calib.lidar_elevation_offset_deg), self.cfg.registration,
-                    f"frame {kf.frame_index} scan") if registering else None,
+            prepare(kf.registration_scan, self.cfg.registration, f"frame {kf.frame_index} scan")
+            if registering else None,
             None if priors is None else priors.point_depth, None if priors is None else priors.line_endpoints,
         )
         reg = None

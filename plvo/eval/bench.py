@@ -220,10 +220,8 @@ def _registration_init(a: Frame, b: Frame, T_cam_velo: np.ndarray) -> tuple[np.n
 def bench_registration(frames: Sequence[Frame], cfg: SystemConfig, repeat: int = 1
                        ) -> tuple[list[float], dict]:
     """Seconds of align between consecutive stand-in keyframes (newer onto older, as the back end does)."""
-    from plvo.lidar.registration import align, raise_elevation
-
-    def scan(frame: Frame) -> np.ndarray:
-        return raise_elevation(frame.scan, frame.calib.lidar_elevation_offset_deg)
+    from plvo.lidar.registration import align
+    from plvo.lidar.scan import registration_scan as scan
 
     seconds, converged, inits = [], 0, set()
     pos = keyframe_positions(len(frames), cfg.tracking.keyframe_every)

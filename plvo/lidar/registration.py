@@ -36,7 +36,7 @@ corruption of 0.3 m gives only exp(-2 * 1.35^2) = 0.026; see e's discrimination 
 KITTI's scans: every return of the HDL-64E recordings sits about 0.2 deg too low in elevation (IMLS-SLAM found it;
 CT-ICP and KISS-ICP raise every KITTI point by 0.205 deg). Uncorrected, registration between keyframes on sequence
 04 pitches by -66 mdeg a keyframe pair on average (rms 68; yaw and roll rms ~20); raised, the mean pitch error is
-0.4 mdeg (rms 19). `raise_elevation` does it, with the angle the dataset's Calibration carries
+0.4 mdeg (rms 19). `plvo.lidar.scan.registration_scan` does it, with the angle the dataset's Calibration carries
 (`lidar_elevation_offset_deg`: 0.205 for KITTI, 0 for the synthetic town); it is applied to the scans registration
 uses only, not to the depth priors, whose camera extrinsic KITTI calibrated on the uncorrected scans (measured on
 04: correcting the scans the depth extraction sees too gave 0.67 % over 10/20/40 m against 0.58 %).
@@ -81,26 +81,6 @@ class RegistrationResult:
     converged: bool
     fitness: float
     time_s: float
-
-
-def raise_elevation(scan: np.ndarray, degrees: float) -> np.ndarray:
-    """(N,3|4) lidar-frame points -> a copy with every point's elevation raised by `degrees`, range and azimuth
-    unchanged (KISS-ICP's correct_kitti_scan, a rotation about p x z); the scan itself when degrees is 0."""
-    if degrees == 0.0:
-        return scan
-    out = np.array(scan, copy=True)
-    x, y, z = out[:, 0], out[:, 1], out[:, 2]
-    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
-    h = np.hypot(x, y)
-    # the rotation written out: horizontal components scale by cos a - sin a z/h, z' = z cos a + h sin a; a point
-    # straight up or down (h = 0) has no azimuth to keep and is left as it is
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.where(h > 0, c - s * z / h, 1.0)
-    z_new = np.where(h > 0, z * c + h * s, z)
-    x *= f
-    y *= f
-    out[:, 2] = z_new
-    return out
 
 
 def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan", voxel_m: float | None = None) -> o3d.geometry.PointCloud:

@@ -31,7 +31,6 @@ import time
 import numpy as np
 
 from plvo.config import SystemConfig
-from plvo.lidar.registration import raise_elevation
 from plvo.geometry import se3
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
@@ -54,7 +53,6 @@ class LoopWorker(KeyframeWorker):
         self.cfg = config
         self.map = landmark_map
         self.K = np.asarray(calib.K, dtype=float)
-        self.elevation_offset_deg = calib.lidar_elevation_offset_deg
         self.closer = LoopCloser(self.K, cfg=config.loop, T_cam_velo=np.asarray(calib.T_cam_velo, float),
                                  reg_cfg=config.registration)
         self.n_corrections = 0
@@ -95,7 +93,7 @@ class LoopWorker(KeyframeWorker):
 
     def _loop_keyframe(self, kf: KeyframeInfo, T_world_cam: np.ndarray) -> LoopKeyframe:
         priors = kf.depth_priors
-        scan = raise_elevation(kf.frame.scan, self.elevation_offset_deg)  # for the verification's registration
+        scan = kf.registration_scan  # for the verification's registration
         if priors is None:  # no-depth-priors ablation: nothing metric to verify against
             f = kf.features
             return LoopKeyframe(kf.kf_id, T_world_cam, f.keypoints, f.descriptors,

@@ -8,12 +8,14 @@ interval. cfg.keyframe_max_gap caps the interval when keyframe_every is set larg
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from plvo.config import TrackingConfig
 from plvo.geometry import se3
 from plvo.geometry.camera import pixel_rays, project
+from plvo.lidar.scan import registration_scan
 from plvo.types import DepthPriors, FeatureSet, Frame
 
 FIRST = "first frame"
@@ -86,6 +88,11 @@ class KeyframeInfo:
     point_landmark: np.ndarray
     line_landmark: np.ndarray
     reason: str
+
+    @cached_property
+    def registration_scan(self) -> np.ndarray:
+        """The scan as registration uses it (plvo.lidar.scan), made once for the back end and the loop closer."""
+        return registration_scan(self.frame)
 
 
 def triangulate_tracks(K: np.ndarray, T_world_cam0: np.ndarray, uv0: np.ndarray, T_world_cam1: np.ndarray,
