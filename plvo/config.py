@@ -165,7 +165,12 @@ class BackendConfig:
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
-    concurrent: bool = True  # run the back end in its own worker beside the tracker
+    concurrent: bool = True  # run the back end and the loop closer beside the tracker (False: inline, lag 0)
+    # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker) or "thread".
+    executor: str = "process"
+    # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
+    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was.
+    max_lag_frames: int = 3
 
 
 @dataclass(frozen=True)
@@ -208,6 +213,10 @@ class LoopConfig:
     # synthetic town repeats buildings: a 187 m false loop passed PnP/PnL and scan registration). 0 disables.
     max_drift_fraction: float = 0.1
     max_drift_floor_m: float = 2.0
+    # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
+    # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
+    max_lag_frames: int = 20
+    global_ba_lag_frames: int = 100
 
 
 @dataclass(frozen=True)

@@ -29,3 +29,7 @@ class SynthError(PlvoError):
 
 class RecordingError(PlvoError):
     """A recording cannot be written or read back (names the file)."""
+
+
+class WorkerError(PlvoError):
+    """A back-end or loop-closer worker failed (names the worker, keyframe and frame)."""

@@ -1,10 +1,20 @@
 """The System: wires the stages together, one `step(frame)` a frame, and hands every result to the recorders.
 
 Tracking runs in the caller's thread: features -> matching -> PnP/PnL -> keyframe decision; on a keyframe the
-depth priors and new landmarks (all inside `plvo.tracking.frontend.Frontend`). Each keyframe then goes to the back
-end (registration, scale correction, bundle adjustment; `plvo.backend.worker.Backend`, in its own thread when
-`backend.concurrent`) and to the loop closer. Results of the workers are handed to the recorders from the
-tracking thread, at the next step, so recorders are only ever called from one thread.
+depth priors and new landmarks (all inside `plvo.tracking.frontend.Frontend`). Each keyframe then goes, as a job
+read from the map at that moment, to the back end (registration, scale correction, bundle adjustment;
+`plvo.backend.worker.BackendCore`) and to the loop closer (`plvo.loop.worker.LoopCore`), each run by a
+`plvo.workers.OrderedWorker` inline, in a thread or in a worker process.
+
+The map has one owner and one writer: this thread. Workers return typed corrections, which the System applies
+(`LandmarkMap.apply`) at fixed points of the run, waiting there for a worker that is late:
+- a keyframe's back-end result at the start of frame (its frame + backend.max_lag_frames), or before the next
+  keyframe's window is read, whichever comes first;
+- a keyframe's loop result at the start of frame (its frame + loop.max_lag_frames); after an applied loop
+  correction the global bundle adjustment is submitted, its result applied loop.global_ba_lag_frames later.
+So the tracker runs ahead of the workers by a bounded lag and the trajectory does not depend on the machine's load
+or the workers' speed: a slower worker costs frames a second, never accuracy. Inline (`backend.concurrent =
+false`) every lag is 0: each keyframe is fully processed before the next frame.
 
 Poses: the back end moves keyframes after the tracker has passed them. Every frame's pose is kept relative to the
 keyframe it was tracked from, and `poses` composes it with that keyframe's current pose, so the reported
@@ -15,6 +25,7 @@ The System imports no viewer: recorders (Rerun, viser) are handed in from `plvo_
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from collections import defaultdict
@@ -28,8 +39,10 @@ import numpy as np
 from plvo.config import SystemConfig
 from plvo.geometry import se3
 from plvo.recording import NullRecorder, Recorder, RunInfo
-from plvo.results import KeyframeResult, TimingResult, TrackingResult
+from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, MapResult, MetricsResult, TimingResult, TrackingResult
+from plvo.tracking.corrections import GLOBAL_BA, LOOP
 from plvo.types import Calibration, Frame
+from plvo.workers import OrderedWorker
 
 log = logging.getLogger(__name__)
 
@@ -82,12 +95,15 @@ class System:
         self.n_lost = 0
         self._frame_ref: dict[int, tuple[int, np.ndarray]] = {}  # frame -> (keyframe id, T_kf_cam)
         self._frontend = None
-        self._backend = None
-        self._loop = None
+        self._backend: OrderedWorker | None = None
+        self._loop: OrderedWorker | None = None
+        self._due: dict[str, collections.deque] = {"backend": collections.deque(), "loop": collections.deque()}
+        self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0}
         self._calib: Calibration | None = None
         self._clock = _Clock()
         self._depth_debug: list[Any] = []
         self._ref_kf = -1
+        self._frame_now = 0
 
     @property
     def map(self):
@@ -97,7 +113,7 @@ class System:
         self.recorder.on_run_start(info)
 
     def _build(self, calib: Calibration) -> None:
-        from plvo.backend.worker import Backend
+        from plvo.backend.worker import BackendCore
         from plvo.depth.extract import extract_depth
         from plvo.features.extract import extract_features
         from plvo.features.matching import match_lines, match_points
@@ -113,15 +129,22 @@ class System:
 
         self._calib = calib
         self._frontend = Frontend(calib, self.config, stages=(extract_features, match_points, match_lines, depth))
-        self._backend = Backend(calib, self.config, self._frontend.map) if self.config.backend.enabled else None
-        self._loop = None
+        b = self.config.backend
+        mode = b.executor if b.concurrent else "inline"
+        if b.enabled:
+            self._backend = OrderedWorker("back end", BackendCore, (calib, self.config), mode)
         if self.config.loop.enabled:
-            from plvo.loop.worker import LoopWorker
+            from plvo.loop.worker import LoopCore
 
-            self._loop = LoopWorker(calib, self.config, self._frontend.map)
-            if self._backend is not None:
-                self._backend.loop_edges = self._loop.loop_edges  # drawn in the keyframe graph
-                self._loop.registration_edges = self._backend.registration_edges  # for the global BA
+            self._loop = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode)
+
+    @property
+    def _lags(self) -> tuple[int, int, int]:
+        """Frames from submission to application: back end, loop result, global BA (all 0 inline)."""
+        if not self.config.backend.concurrent:
+            return 0, 0, 0
+        return (max(0, self.config.backend.max_lag_frames), max(0, self.config.loop.max_lag_frames),
+                max(0, self.config.loop.global_ba_lag_frames))
 
     def _emit(self, frame_index: int, results: Iterable[Any]) -> None:
         with self._clock.stage("recording"):
@@ -132,9 +155,12 @@ class System:
         """Process one frame: track it, hand keyframes to the workers, stream every result, time it all."""
         if self._frontend is None:
             self._build(frame.calib)
+        self._frame_now = frame.index
         self._clock = _Clock()
         keyframe = None
         with self._clock.stage("total"):  # wall time of the step, recorders included ("recording" is their share)
+            with self._clock.stage("apply"):  # waiting for and applying the results due at this frame
+                self._apply_due(frame.index)
             with self._clock.stage("recording"):
                 self.recorder.on_frame(frame)
             with self._clock.stage("tracking"):
@@ -155,7 +181,6 @@ class System:
             self._frame_ref[frame.index] = (self._ref_kf, se3.inv(T_ref) @ T)
             if res.keyframe is not None:
                 keyframe = self._on_keyframe(frame, res)
-            self._collect()
         seconds = dict(self._clock.seconds)
         for name, value in seconds.items():
             self.timings[name].append(value)
@@ -169,32 +194,125 @@ class System:
         keyframe = KeyframeResult(frame.index, kf.kf_id, np.asarray(kf.T_world_cam), res.keyframe_reason)
         self._emit(frame.index, [keyframe, *self._depth_debug])
         self._depth_debug = []
+        lag_b, lag_l, _ = self._lags
         if self._backend is not None:
+            with self._clock.stage("apply"):
+                self._apply_all("backend")  # the window read next includes every earlier result
             with self._clock.stage("backend_submit"):
-                self._backend.submit(kf)
+                self._submit("backend", self._backend_job(kf), frame.index + lag_b)
+            if lag_b == 0:
+                self._apply_all("backend")
         if self._loop is not None:
             with self._clock.stage("loop_submit"):
-                self._loop.submit(kf)
+                self._submit("loop", self._loop_job(kf), frame.index + lag_l)
+            if lag_l == 0:
+                self._apply_all("loop")
         return keyframe
 
-    def _collect(self) -> None:
-        """Hand the workers' finished results to the recorders (always from this thread)."""
-        for worker in (self._backend, self._loop):
-            if worker is None:
-                continue
-            for frame_index, result in worker.poll():
-                self._emit(frame_index, [result])
-            for name, values in worker.drain_timings().items():
-                self.timings[name].extend(values)
+    def _backend_job(self, kf):
+        from plvo.backend.worker import BackendJob
+
+        n = max(2, self.config.backend.window_keyframes)
+        ids = np.arange(max(0, kf.kf_id - n + 1), kf.kf_id + 1)
+        use_lines = self._frontend.uses_lines
+        scan = kf.registration_scan if self.config.backend.registration else None
+        return BackendJob(kf.kf_id, kf.frame_index, scan, self.map.window_data(ids, use_lines))
+
+    def _loop_job(self, kf):
+        from plvo.loop.worker import LoopJob, loop_keyframe
+
+        lk = loop_keyframe(kf, np.asarray(self._calib.K, float))
+        return LoopJob(kf.kf_id, kf.frame_index, lk, self.map.poses(), self._loop_applied())
+
+    def _loop_applied(self) -> int:
+        return sum(self.map.applied.get(s, 0) for s in (LOOP, GLOBAL_BA))
+
+    # ---- results of the workers, applied at fixed frames ------------------------------------------------
+    def _submit(self, which: str, job, due_frame: int) -> None:
+        worker = self._backend if which == "backend" else self._loop
+        worker.submit(job)
+        self._due[which].append(due_frame)
+
+    def _apply_due(self, frame_index: int) -> None:
+        """Wait for and apply every worker result due at or before frame_index, back end first."""
+        for which in ("backend", "loop"):
+            due = self._due[which]
+            while due and due[0] <= frame_index:
+                self._apply_next(which)
+
+    def _apply_all(self, which: str) -> None:
+        while self._due[which]:
+            self._apply_next(which)
+
+    def _apply_next(self, which: str) -> None:
+        self._due[which].popleft()
+        if which == "backend":
+            t0 = time.perf_counter()
+            out = self._backend.take()
+            self._clock.add("backend_wait", time.perf_counter() - t0)
+            self._apply_backend(out)
+        else:
+            t0 = time.perf_counter()
+            out = self._loop.take()
+            self._clock.add("loop_wait", time.perf_counter() - t0)
+            self._apply_loop(out)
+
+    def _apply_backend(self, out) -> None:
+        if out.correction is not None:
+            self.map.apply(out.correction)
+        for name, value in out.step.seconds.items():
+            self.timings[name].append(value)
+        self._emit(out.frame_index, [self._graph(out.frame_index, out.step.scale),
+                                     MapResult(out.frame_index, out.points, out.lines),
+                                     MetricsResult(out.frame_index, out.metrics)])
+
+    def _apply_loop(self, out) -> None:
+        from plvo.loop.worker import GlobalBAJob
+
+        t0 = time.perf_counter()
+        c = out.correction
+        if c is not None:
+            self.map.apply(c)
+        if out.rejected:
+            self.loop_stats["global_ba_rejected"] += 1
+        results = list(out.results)
+        if c is not None and c.source == LOOP:
+            self.loop_stats["corrections"] += 1
+            e = c.edges[0]
+            log.info("loop %d -> %d closed: %d keyframes corrected", e.j, e.i, self.map.n_keyframes)
+            if self.config.loop.global_ba:
+                _, _, lag_g = self._lags
+                job = GlobalBAJob(out.frame_index, self.map.global_data(), out.correction_m, self._loop_applied())
+                self._submit("loop", job, self._frame_now + lag_g)
+        if c is not None:
+            if c.source == GLOBAL_BA:
+                self.loop_stats["global_ba"] += 1
+            results.append(self._graph(out.frame_index))
+        timings = dict(out.timings)
+        if c is not None:
+            timings["loop_apply"] = time.perf_counter() - t0
+        for name, value in timings.items():
+            self.timings[name].append(value)
+        self._emit(out.frame_index, results)
+        if c is not None and c.source == LOOP and self._lags[2] == 0:
+            self._apply_all("loop")
+
+    def _graph(self, frame_index: int, scale: float = 1.0) -> GraphResult:
+        """The keyframe graph as the map has it now: poses, odometry (registration) and loop edges, zeta."""
+        with self.map.lock:
+            poses, edges = self.map.poses(), list(self.map.edges)
+        pairs = np.array([(e.i, e.j) for e in edges], int).reshape(-1, 2)
+        kinds = np.array([e.kind for e in edges], int)
+        zeta = np.array([np.nan if e.kind == EDGE_LOOP else e.zeta for e in edges], float)
+        return GraphResult(frame_index, np.arange(len(poses)), poses, pairs, kinds, zeta, scale)
 
     def finish(self) -> None:
-        """Wait for the workers to process every keyframe and stream what they produced."""
-        for worker in (self._backend, self._loop):
-            if worker is not None:
-                worker.flush()
-        self._collect()
-        if self._loop is not None and self._loop.n_corrections:
-            log.info("loop closer corrected the map %d time(s)", self._loop.n_corrections)
+        """Wait for the workers to process every keyframe, apply and stream what they produced."""
+        for which in ("backend", "loop"):
+            self._apply_all(which)
+        self._apply_all("backend")
+        if self.loop_stats["corrections"]:
+            log.info("loop closer corrected the map %d time(s)", self.loop_stats["corrections"])
 
     def run(self, frames: Iterable[Frame], info: RunInfo | None = None) -> None:
         """Start (when `info` is given), step through `frames`, finish; the caller closes."""

@@ -1,104 +1,200 @@
-"""A keyframe consumer that runs inline or in its own thread (the back end and the loop closer are two).
+"""Run a worker core's `process(job)` over jobs in submission order: inline, in a thread, or in a worker process.
 
-Results are queued as (frame_index, result) pairs and handed to the System's thread by `poll`, so recorders are
-only ever called from the tracking thread. A failure in the worker is re-raised in the tracking thread at the
-next `submit` or `flush`, never swallowed.
+The back end and the loop closer are cores (plvo.backend.worker.BackendCore, plvo.loop.worker.LoopCore): objects
+whose outputs depend only on the jobs they were given, in order. `OrderedWorker` runs one and hands its outputs
+back in the same order (`take`, which waits); the System decides at which frame it takes each, so where and how fast
+the core ran changes the frames a second, never the result.
+
+Where it runs (`mode`):
+- "inline": at `submit`, in the caller's thread (what `backend.concurrent = false` gives);
+- "thread": a thread of this process. It shares the GIL with the tracker: the numpy, scipy and open3d calls release
+  it only in parts, so on two cores the tracker slows while the back end runs;
+- "process": a spawned worker process, jobs and outputs pickled through multiprocessing queues (whose feeder
+  threads do the pickling off the caller's path). No GIL is shared; each job ships its window (a few hundred kB)
+  and each keyframe's scan (about 2 MB) once. Log records of the worker are sent back with each output and logged
+  again in this process when the output is taken, so they reach the recorders in a fixed order.
+
+A failure in the core comes back as `plvo.errors.WorkerError` from `take`, one line naming the worker and the job.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
+import multiprocessing
 import queue
+import sys
 import threading
+import traceback
+from collections.abc import Callable
 from typing import Any
+
+from plvo.errors import WorkerError
 
 log = logging.getLogger(__name__)
 
+MODES = ("inline", "thread", "process")
+_STOP = None
 
-class KeyframeWorker:
-    """Subclasses implement `process(kf)` and call `emit` / `add_timing`; `threaded` picks the mode."""
 
-    name = "worker"
+def _describe(job: Any) -> str:
+    kf, frame = getattr(job, "kf_id", None), getattr(job, "frame_index", None)
+    parts = [f"keyframe {kf}" if kf is not None else type(job).__name__, f"frame {frame}" if frame is not None else ""]
+    return " at ".join(p for p in parts if p)
 
-    def __init__(self, threaded: bool):
-        self._pending: list[tuple[int, Any]] = []
-        self._timings: dict[str, list[float]] = {}
-        self._lock = threading.Lock()
-        self._queue: queue.Queue[Any] = queue.Queue()
-        self._error: BaseException | None = None
+
+class _Failure:
+    """What a worker sends back instead of an output when its core raised."""
+
+    def __init__(self, job: Any, exc: BaseException):
+        self.where = _describe(job)
+        self.message = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        self.trace = traceback.format_exc()
+
+
+class _Capture(logging.Handler):
+    """Collects the log records of a worker process, to be logged again in the parent."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[tuple[str, int, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append((record.name, record.levelno, record.getMessage()))
+
+
+def _serve(jobs, outputs, factory: Callable, args: tuple, level: int) -> None:
+    """A worker process's main loop."""
+    if sys.platform.startswith("linux"):  # end with the parent (a killed run leaves no worker behind)
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    capture = _Capture()
+    root = logging.getLogger()
+    root.handlers[:] = [capture]
+    root.setLevel(level)
+    try:
+        core = factory(*args)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent
+        outputs.put((_Failure(None, exc), capture.records))
+        return
+    while True:
+        job = jobs.get()
+        if job is _STOP:
+            return
+        try:
+            out: Any = core.process(job)
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent
+            out = _Failure(job, exc)
+        records, capture.records = capture.records, []
+        outputs.put((out, records))
+
+
+class OrderedWorker:
+    """One core, run `mode` (MODES); `submit(job)` in order, `take()` returns the outputs in the same order."""
+
+    def __init__(self, name: str, factory: Callable, args: tuple, mode: str = "inline"):
+        if mode not in MODES:
+            raise ValueError(f"worker mode must be one of {MODES}, got {mode!r}")
+        self.name = name
+        self.mode = mode
+        self._outstanding: collections.deque[Any] = collections.deque()  # jobs submitted, output not taken
+        self._done: collections.deque[Any] = collections.deque()  # inline outputs
+        self._core = None
         self._thread: threading.Thread | None = None
-        if threaded:
-            self._thread = threading.Thread(target=self._run, name=f"plvo-{self.name}", daemon=True)
+        self._proc = None
+        self._failed: str = ""
+        if mode == "inline":
+            self._core = factory(*args)
+        elif mode == "thread":
+            self._core = factory(*args)
+            self._jobs: Any = queue.Queue()
+            self._outputs: Any = queue.Queue()
+            self._thread = threading.Thread(target=self._run_thread, name=f"plvo-{name}", daemon=True)
             self._thread.start()
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            self._jobs, self._outputs = ctx.Queue(), ctx.Queue()
+            level = logging.getLogger("plvo").getEffectiveLevel()
+            self._proc = ctx.Process(target=_serve, args=(self._jobs, self._outputs, factory, args, level),
+                                     name=f"plvo-{name}", daemon=True)
+            self._proc.start()
 
     @property
-    def threaded(self) -> bool:
-        return self._thread is not None
+    def pending(self) -> int:
+        """Jobs submitted whose output has not been taken."""
+        return len(self._outstanding)
 
-    def process(self, kf: Any) -> None:
-        raise NotImplementedError
-
-    def submit(self, kf: Any) -> None:
-        """Process now (inline) or queue for the thread."""
-        self._raise_if_failed()
-        if self._thread is None:
-            self.process(kf)
+    def submit(self, job: Any) -> None:
+        if self._failed:
+            raise WorkerError(self._failed)
+        self._outstanding.append(job)
+        if self.mode == "inline":
+            try:
+                self._done.append(self._core.process(job))
+            except Exception as exc:
+                self._failed = f"the {self.name} failed on {_describe(job)}: {type(exc).__name__}: {exc}"
+                log.debug("%s", traceback.format_exc())
+                raise WorkerError(self._failed.splitlines()[0]) from exc
         else:
-            self._queue.put(kf)
+            self._jobs.put(job)
 
-    def poll(self) -> list[tuple[int, Any]]:
-        """Results produced since the last poll, as (frame_index, result) pairs."""
-        with self._lock:
-            out, self._pending = self._pending, []
+    def take(self) -> Any:
+        """The output of the oldest job not yet taken, waiting for it; WorkerError when the core failed."""
+        if not self._outstanding:
+            raise RuntimeError(f"{self.name}: nothing submitted to take")
+        job = self._outstanding.popleft()
+        if self.mode == "inline":
+            return self._done.popleft()
+        out, records = self._wait(job)
+        for name, level, msg in records:
+            logging.getLogger(name).log(level, "%s", msg)
+        if isinstance(out, _Failure):
+            self._failed = f"the {self.name} failed on {out.where or _describe(job)}: {out.message}"
+            log.debug("%s worker traceback:\n%s", self.name, out.trace)
+            raise WorkerError(self._failed)
         return out
 
-    def drain_timings(self) -> dict[str, list[float]]:
-        """Seconds per stage since the last call, one entry a keyframe."""
-        with self._lock:
-            out, self._timings = self._timings, {}
-        return out
+    def _wait(self, job: Any) -> tuple[Any, list]:
+        while True:
+            try:
+                return self._outputs.get(timeout=1.0)
+            except queue.Empty:
+                if self._proc is not None and not self._proc.is_alive():
+                    self._failed = (f"the {self.name} worker process ended (exit code {self._proc.exitcode}) "
+                                    f"before {_describe(job)}")
+                    raise WorkerError(self._failed) from None
+                if self._thread is not None and not self._thread.is_alive():
+                    self._failed = f"the {self.name} thread ended before {_describe(job)}"
+                    raise WorkerError(self._failed) from None
 
-    def flush(self) -> None:
-        """Wait until every submitted keyframe is processed."""
-        if self._thread is not None:
-            self._queue.join()
-        self._raise_if_failed()
+    def _run_thread(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is _STOP:
+                return
+            try:
+                out: Any = self._core.process(job)
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread by take()
+                out = _Failure(job, exc)
+            self._outputs.put((out, []))
 
     def close(self) -> None:
-        """Stop the thread; keyframes still queued are dropped (after Ctrl-C nobody waits for them)."""
+        """Stop the worker; outputs not taken are dropped (after Ctrl-C nobody waits for them)."""
+        self._outstanding.clear()
         if self._thread is not None and self._thread.is_alive():
-            while True:
-                try:
-                    self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                self._queue.task_done()
-            self._queue.put(None)
+            self._jobs.put(_STOP)
             self._thread.join(timeout=60)
-
-    def emit(self, frame_index: int, *results: Any) -> None:
-        with self._lock:
-            self._pending.extend((frame_index, r) for r in results)
-
-    def add_timing(self, seconds: dict[str, float]) -> None:
-        with self._lock:
-            for name, value in seconds.items():
-                self._timings.setdefault(name, []).append(value)
-
-    def _raise_if_failed(self) -> None:
-        if self._error is not None:
-            raise RuntimeError(f"the {self.name} worker failed") from self._error
-
-    def _run(self) -> None:
-        while True:
-            kf = self._queue.get()
-            try:
-                if kf is None:
-                    return
-                if self._error is None:
-                    self.process(kf)
-            except BaseException as exc:  # noqa: BLE001 - re-raised in the tracking thread
-                log.exception("%s failed on keyframe %s", self.name, getattr(kf, "kf_id", "?"))
-                self._error = exc
-            finally:
-                self._queue.task_done()
+        if self._proc is not None:
+            if self._proc.is_alive():
+                self._jobs.put(_STOP)
+                self._proc.join(timeout=10)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(timeout=5)
+            for q in (self._jobs, self._outputs):
+                q.cancel_join_thread()
+                q.close()
+            self._proc = None

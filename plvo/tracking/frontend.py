@@ -370,13 +370,17 @@ class Frontend:
                        ) -> tuple[KeyframeInfo, tuple[int, int]]:
         kf_id = self.map.add_keyframe(frame.index, state.T_world_cam)
         assoc, feats = state.assoc, state.features
-        pi = np.flatnonzero(assoc.point_landmark >= 0)
-        self.map.add_point_observations(assoc.point_landmark[pi], kf_id, pi, feats.keypoints[pi])
-        li = np.flatnonzero(assoc.line_landmark >= 0)
-        self.map.add_line_observations(assoc.line_landmark[li], kf_id, li, feats.segments[li])
         priors: DepthPriors | None = None
         if from_lidar or self.cfg.tracking.use_depth_priors:
             priors = self._depth(frame.scan, feats, self.calib, self.cfg.depth)
+        # The observations carry this keyframe's depth priors: the back end and the global BA read them there.
+        pi = np.flatnonzero(assoc.point_landmark >= 0)
+        self.map.add_point_observations(assoc.point_landmark[pi], kf_id, pi, feats.keypoints[pi],
+                                        None if priors is None else _point_prior(priors, pi))
+        li = np.flatnonzero(assoc.line_landmark >= 0)
+        self.map.add_line_observations(assoc.line_landmark[li], kf_id, li, feats.segments[li],
+                                       None if priors is None else _line_prior(priors, li))
+        if priors is not None:
             n_new = self._landmarks_from_priors(kf_id, state, priors, lines=self.uses_lines)
         else:
             n_new = (self._landmarks_from_triangulation(kf_id, state), 0)
@@ -397,7 +401,7 @@ class Frontend:
         new_p = np.flatnonzero((assoc.point_landmark < 0) & priors.point_valid)
         pc = backproject(self.K, feats.keypoints[new_p], priors.point_depth[new_p])
         ids = self.map.add_points(se3.transform_points(T, pc), feats.descriptors[new_p], np.ones(len(new_p), bool),
-                                  kf_id, new_p, feats.keypoints[new_p])
+                                  kf_id, new_p, feats.keypoints[new_p], _point_prior(priors, new_p))
         assoc.point_landmark[new_p] = ids
         if not lines:
             return len(new_p), 0
@@ -405,7 +409,7 @@ class Frontend:
                                & np.isfinite(priors.line_endpoints).reshape(-1, 6).all(axis=1))
         ends = se3.transform_points(T, priors.line_endpoints[new_l].reshape(-1, 3)).reshape(-1, 2, 3)
         ids = self.map.add_lines(ends, feats.line_descriptors[new_l], np.ones(len(new_l), bool), kf_id, new_l,
-                                 feats.segments[new_l])
+                                 feats.segments[new_l], _line_prior(priors, new_l))
         assoc.line_landmark[new_l] = ids
         return len(new_p), len(new_l)
 
@@ -443,6 +447,24 @@ class Frontend:
             association=FrameAssociation(state.assoc.point_landmark.copy(), state.assoc.line_landmark.copy()),
             features=state.features, keyframe=keyframe, timings=dict(timings),
         )
+
+
+def _point_prior(priors: DepthPriors, rows: np.ndarray) -> np.ndarray:
+    """Depth prior z of keypoints rows (NaN where none), as the map stores it with each observation."""
+    d = np.asarray(priors.point_depth, float)
+    out = np.full(len(rows), np.nan)
+    ok = rows < len(d)
+    out[ok] = d[rows[ok]]
+    return out
+
+
+def _line_prior(priors: DepthPriors, rows: np.ndarray) -> np.ndarray:
+    """Camera-frame prior endpoints (n,2,3) of segments rows (NaN where none)."""
+    e = np.asarray(priors.line_endpoints, float).reshape(-1, 2, 3)
+    out = np.full((len(rows), 2, 3), np.nan)
+    ok = rows < len(e)
+    out[ok] = e[rows[ok]]
+    return out
 
 
 def _yaw(angle: float) -> np.ndarray:

@@ -1,12 +1,14 @@
-"""The landmark map shared by the tracker and the back end: point and line landmarks, keyframe poses, observations.
+"""The landmark map: point and line landmarks, keyframe poses, observations with their depth priors, graph edges.
 
 Everything lives in growable numpy arrays indexed by landmark id (ids are never reused; removal clears the
 `alive` flag), so the hot paths (gathering the positions of the landmarks seen in the previous frame) are single
-fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement).
+fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement, prior).
 
-Thread safety: every method takes `self.lock` (an RLock). The back end writes refined positions and keyframe
-poses in one call, `apply_update`, which bumps `version`; readers that need several consistent arrays either
-hold `with map.lock:` or take `snapshot()`, a frozen copy stamped with the version it was taken at.
+One owner, one writer: the tracker adds keyframes, landmarks and observations; the workers (back end, loop closer)
+never write it. They read copies taken at fixed points (`window_data`, `global_data`, `poses`) and return typed
+`MapCorrection`s, which `apply` writes in one place (plvo.tracking.corrections has the rule). Keyframe poses are
+held read-only outside `add_keyframe` and `apply`. Every method takes `self.lock` (an RLock), so a viewer thread
+may read a consistent `snapshot()` at any time.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plvo.geometry import se3
+from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, WindowData, corrected_poses,
+                                       motion_for, move_points, transform_each)
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
 
@@ -66,10 +70,11 @@ def _line_store() -> _Columns:
     })
 
 
-def _obs_store(meas_shape: tuple[int, ...]) -> _Columns:
+def _obs_store(meas_shape: tuple[int, ...], prior_shape: tuple[int, ...]) -> _Columns:
+    # prior: the observing keyframe's depth prior of the feature (z for points, camera-frame endpoints for lines)
     return _Columns({
         "landmark": ((), np.int64, -1), "keyframe": ((), np.int64, -1), "feature": ((), np.int64, -1),
-        "measurement": (meas_shape, np.float64, np.nan),
+        "measurement": (meas_shape, np.float64, np.nan), "prior": (prior_shape, np.float64, np.nan),
     })
 
 
@@ -103,6 +108,7 @@ class Observations:
     keyframe: np.ndarray
     feature: np.ndarray
     measurement: np.ndarray
+    prior: np.ndarray | None = None  # (K,) depth z for points, (K,2,3) camera-frame endpoints for lines; NaN none
 
 
 class LandmarkMap:
@@ -113,9 +119,12 @@ class LandmarkMap:
         self.version = 0
         self._pts = _point_store()
         self._lines = _line_store()
-        self._pobs = _obs_store((2,))
-        self._lobs = _obs_store((4,))
+        self._pobs = _obs_store((2,), ())
+        self._lobs = _obs_store((4,), (2, 3))
         self._kfs = _Columns({"frame": ((), np.int64, -1), "T_world_cam": ((4, 4), np.float64, np.nan)})
+        self._kfs.cols["T_world_cam"].flags.writeable = False
+        self.edges: list[GraphEdge] = []
+        self.applied: dict[str, int] = {}  # corrections applied, by source
 
     # ---- sizes -------------------------------------------------------------------------------------------
     @property
@@ -137,9 +146,16 @@ class LandmarkMap:
         """Register a keyframe with its (4,4) pose; returns its id (0, 1, ...)."""
         with self.lock:
             T = se3.orthonormalize_batch(np.asarray(T_world_cam, float)[None])
+            self._kfs.cols["T_world_cam"].flags.writeable = True
             row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
+            self._kfs.cols["T_world_cam"].flags.writeable = False
             self.version += 1
             return int(row[0])
+
+    def poses(self) -> np.ndarray:
+        """(N,4,4) T_world_cam of every keyframe, by id (a copy)."""
+        with self.lock:
+            return self._kfs["T_world_cam"].copy()
 
     def keyframe_pose(self, kf_id: int) -> np.ndarray:
         """(4,4) T_world_cam of keyframe kf_id (a copy)."""
@@ -152,10 +168,9 @@ class LandmarkMap:
 
     # ---- adding landmarks --------------------------------------------------------------------------------
     def add_points(self, positions: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
-                   feature_idx: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(n,3) world positions, (n,32) ORB, (n,) bool, keyframe id, (n,) keypoint indices, (n,2) px -> (n,) ids.
-
-        Each new landmark gets its first observation in keyframe kf_id.
+                   feature_idx: np.ndarray, uv: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+        """(n,3) world positions, (n,32) ORB, (n,) bool, keyframe id, (n,) keypoint indices, (n,2) px, optional (n,)
+        depth prior z of each -> (n,) ids. Each new landmark gets its first observation in keyframe kf_id.
         """
         positions = np.asarray(positions, dtype=float).reshape(-1, 3)
         n = len(positions)
@@ -165,12 +180,13 @@ class LandmarkMap:
                 has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
                 first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
             )
-            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2))
+            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2), depth)
             return ids
 
     def add_lines(self, endpoints: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
-                  segment_idx: np.ndarray, segments: np.ndarray) -> np.ndarray:
-        """(n,2,3) world endpoints, (n,32) LBD, (n,) bool, keyframe id, (n,) segment indices, (n,4) -> (n,) ids."""
+                  segment_idx: np.ndarray, segments: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+        """(n,2,3) world endpoints, (n,32) LBD, (n,) bool, keyframe id, (n,) segment indices, (n,4), optional
+        (n,2,3) camera-frame prior endpoints -> (n,) ids."""
         endpoints = np.asarray(endpoints, dtype=float).reshape(-1, 2, 3)
         n = len(endpoints)
         with self.lock:
@@ -179,28 +195,36 @@ class LandmarkMap:
                 has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
                 first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
             )
-            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(n, 4))
+            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(n, 4),
+                          prior)
             return ids
 
-    def add_point_observations(self, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray, uv: np.ndarray) -> None:
-        """Record that point landmarks ids (k,) were seen in keyframe kf_id at keypoints feature_idx, (k,2) px."""
+    def add_point_observations(self, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray, uv: np.ndarray,
+                               depth: np.ndarray | None = None) -> None:
+        """Record that point landmarks ids (k,) were seen in keyframe kf_id at keypoints feature_idx, (k,2) px,
+        with (k,) depth priors z (NaN or None: none)."""
         with self.lock:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2))
+            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2), depth)
 
     def add_line_observations(self, ids: np.ndarray, kf_id: int, segment_idx: np.ndarray,
-                              segments: np.ndarray) -> None:
-        """Record that line landmarks ids (k,) were seen in keyframe kf_id as segments (k,4)."""
+                              segments: np.ndarray, prior: np.ndarray | None = None) -> None:
+        """Record that line landmarks ids (k,) were seen in keyframe kf_id as segments (k,4), with (k,2,3)
+        camera-frame prior endpoints (NaN or None: none)."""
         with self.lock:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4))
+            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4),
+                          prior)
 
-    def _add_obs(self, store: _Columns, obs: _Columns, ids, kf_id, feature_idx, meas) -> None:
+    def _add_obs(self, store: _Columns, obs: _Columns, ids, kf_id, feature_idx, meas, prior=None) -> None:
         k = len(ids)
         if k == 0:
             return
-        obs.append(landmark=ids, keyframe=np.full(k, kf_id), feature=np.asarray(feature_idx).reshape(k),
-                   measurement=meas)
+        values = dict(landmark=ids, keyframe=np.full(k, kf_id), feature=np.asarray(feature_idx).reshape(k),
+                      measurement=meas)
+        if prior is not None:
+            values["prior"] = np.asarray(prior, float).reshape(k, *obs.cols["prior"].shape[1:])
+        obs.append(**values)
         np.add.at(store.cols["n_obs"], ids, 1)
         self.version += 1
 
@@ -253,7 +277,7 @@ class LandmarkMap:
         if ids is not None:
             keep &= np.isin(lm, np.asarray(ids, dtype=np.int64))
         return Observations(lm[keep].copy(), obs["keyframe"][keep].copy(), obs["feature"][keep].copy(),
-                            obs["measurement"][keep].copy())
+                            obs["measurement"][keep].copy(), obs["prior"][keep].copy())
 
     def mark_seen(self, point_ids: np.ndarray, line_ids: np.ndarray, frame_index: int) -> None:
         """Stamp the landmarks tracked in frame_index (used to cull landmarks nobody sees any more)."""
@@ -304,9 +328,96 @@ class LandmarkMap:
                 # unchecked it grew x3 a keyframe, to a 1e-3 scale error in the rotation blocks after ~35
                 # keyframes, which squeezed keyframe spacing by a quarter on straight synthetic streets.
                 T = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
-                self._kfs.cols["T_world_cam"][ids] = se3.orthonormalize_batch(T)
+                poses = self._kfs.cols["T_world_cam"]
+                poses.flags.writeable = True
+                try:
+                    poses[ids] = se3.orthonormalize_batch(T)
+                finally:
+                    poses.flags.writeable = False
             self.version += 1
             return self.version
+
+    # ---- the one place worker results are written -------------------------------------------------------
+    def apply(self, correction: MapCorrection) -> int:
+        """Apply a worker's correction (rebasing what moved since its snapshot, see plvo.tracking.corrections):
+        keyframe poses, landmarks, graph edges. Returns the new version."""
+        with self.lock:
+            self.edges.extend(correction.edges)
+            self.applied[correction.source] = self.applied.get(correction.source, 0) + 1
+            if not correction.moves_poses:
+                self.version += 1
+                return self.version
+            current = self._kfs["T_world_cam"]
+            new, D, M = corrected_poses(correction, current)
+            kf_ids = np.arange(len(new))
+            changed = np.flatnonzero(np.any(np.abs(D - np.eye(4)) > 0, axis=(1, 2)))
+            cids = np.asarray(correction.keyframe_ids, np.int64)
+            cids = cids[cids < len(current)]
+            pt_ids, pts = self._moved(self._pts, "position", changed, D, correction.point_ids,
+                                      correction.point_positions, cids, M)
+            ln_ids, lns = self._moved(self._lines, "endpoints", changed, D, correction.line_ids,
+                                      correction.line_endpoints, cids, M)
+            return self.apply_update(pt_ids, pts, ln_ids, lns, kf_ids[changed], new[changed])
+
+    def _moved(self, store: _Columns, column: str, changed: np.ndarray, D: np.ndarray, ids: np.ndarray,
+               refined: np.ndarray, cids: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark ids and new positions: the refined ones rebased by their creator's motion since the snapshot,
+        the others created by a changed keyframe moved with it."""
+        first = store["first_kf"]
+        ids = np.asarray(ids, np.int64)
+        others = np.setdiff1d(np.flatnonzero(store["alive"] & np.isin(first, changed)), ids)
+        shape = store.cols[column].shape[1:]
+        k = int(np.prod(shape)) // 3  # 3D points a landmark: 1 for points, 2 endpoints for lines
+        moved = move_points(store[column][others].reshape(-1, 3), np.repeat(first[others], k), D)
+        if len(ids):
+            Mi = motion_for(first[ids], cids, M) if len(M) else np.broadcast_to(np.eye(4), (len(ids), 4, 4))
+            refined = transform_each(np.repeat(Mi, k, axis=0), np.asarray(refined, float).reshape(-1, 3))
+        else:
+            refined = np.zeros((0, 3))
+        out_ids = np.r_[others, ids]
+        out = np.r_[moved, refined].reshape(-1, *shape)
+        return out_ids, out
+
+    def window_data(self, kf_ids: np.ndarray, use_lines: bool = True) -> WindowData:
+        """A copy of what a bundle adjustment of keyframes kf_ids (W,) ascending needs (see WindowData)."""
+        kf_ids = np.asarray(kf_ids, np.int64)
+        with self.lock:
+            T = self._kfs["T_world_cam"][kf_ids].copy()
+            pts = self._window_obs(self._pts, self._pobs, "position", kf_ids)
+            lns = self._window_obs(self._lines, self._lobs, "endpoints", kf_ids) if use_lines else None
+            inside = set(kf_ids.tolist())
+            edges = tuple(e for e in self.edges if e.i in inside and e.j in inside)
+            version = self.version
+        out = dict(kf_ids=kf_ids, T_world_cam=T, point_ids=pts[0], points=pts[1], pt_kf=pts[2], pt_idx=pts[3],
+                   pt_uv=pts[4], pt_depth=pts[5], edges=edges, version=version)
+        if lns is not None:
+            out.update(line_ids=lns[0], lines=lns[1], ln_kf=lns[2], ln_idx=lns[3], ln_seg=lns[4], ln_prior=lns[5])
+        return WindowData(**out)
+
+    @staticmethod
+    def _window_obs(store: _Columns, obs: _Columns, column: str, kf_ids: np.ndarray):
+        lm = obs["landmark"]
+        keep = np.isin(obs["keyframe"], kf_ids)
+        keep &= store["alive"][lm] if len(lm) else np.zeros(0, bool)
+        rows = np.flatnonzero(keep)
+        ids, idx = np.unique(lm[rows], return_inverse=True)
+        return (ids, store[column][ids].copy(), np.searchsorted(kf_ids, obs["keyframe"][rows]), idx,
+                obs["measurement"][rows].copy(), obs["prior"][rows].copy())
+
+    def global_data(self, min_views: int = 2) -> GlobalData:
+        """A copy of every keyframe, every graph edge and the point observations of landmarks min_views or more
+        keyframes see (what the global bundle adjustment after a loop needs)."""
+        with self.lock:
+            lm, kf = self._pobs["landmark"], self._pobs["keyframe"]
+            keep = self._pts["alive"][lm] if len(lm) else np.zeros(0, bool)
+            counts = np.bincount(lm[keep], minlength=self._pts.n)
+            keep &= counts[lm] >= min_views
+            ids = np.unique(lm[keep])
+            return GlobalData(
+                kf_ids=np.arange(self._kfs.n), T_world_cam=self._kfs["T_world_cam"].copy(), edges=tuple(self.edges),
+                landmark=lm[keep].copy(), keyframe=kf[keep].copy(), measurement=self._pobs["measurement"][keep].copy(),
+                depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][ids].copy(),
+                version=self.version)
 
     def landmarks_first_seen_after(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Ids of the live point and line landmarks created by keyframes newer than kf_id."""
