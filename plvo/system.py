@@ -98,7 +98,9 @@ class System:
         self._backend: OrderedWorker | None = None
         self._loop: OrderedWorker | None = None
         self._due: dict[str, collections.deque] = {"backend": collections.deque(), "loop": collections.deque()}
-        self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0}
+        self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0, "backend_discarded": 0}
+        # One entry an applied loop or global BA correction: what it moved, when (for the soak and the log).
+        self.corrections: list[dict[str, Any]] = []
         self._calib: Calibration | None = None
         self._clock = _Clock()
         self._depth_debug: list[Any] = []
@@ -260,6 +262,8 @@ class System:
     def _apply_backend(self, out) -> None:
         if out.correction is not None:
             self.map.apply(out.correction)
+        if out.step.ba is None and "bundle_adjustment" in out.step.seconds:
+            self.loop_stats["backend_discarded"] += 1
         for name, value in out.step.seconds.items():
             self.timings[name].append(value)
         self._emit(out.frame_index, [self._graph(out.frame_index, out.step.scale),
@@ -272,7 +276,9 @@ class System:
         t0 = time.perf_counter()
         c = out.correction
         if c is not None:
+            before = self.map.poses()
             self.map.apply(c)
+            self.corrections.append(self._correction_event(c, before, out))
         if out.rejected:
             self.loop_stats["global_ba_rejected"] += 1
         results = list(out.results)
@@ -296,6 +302,20 @@ class System:
         self._emit(out.frame_index, results)
         if c is not None and c.source == LOOP and self._lags[2] == 0:
             self._apply_all("loop")
+
+    def _correction_event(self, c, before: np.ndarray, out) -> dict[str, Any]:
+        """What an applied loop-closer correction did: source, frames, keyframes, how far it moved them."""
+        after = self.map.poses()
+        moved = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+        event = {"source": c.source, "keyframe_frame": int(out.frame_index), "applied_at_frame": int(self._frame_now),
+                 "keyframes": int(len(after)), "max_move_m": float(moved.max(initial=0.0)),
+                 "newest_move_m": float(moved[-1]) if len(moved) else 0.0,
+                 "seconds": float(sum(out.timings.values()) if c.source == GLOBAL_BA else
+                                  out.timings.get("loop_correct", 0.0))}
+        if c.source == LOOP:
+            e = c.edges[0]
+            event.update(query_keyframe=int(e.j), match_keyframe=int(e.i))
+        return event
 
     def _graph(self, frame_index: int, scale: float = 1.0) -> GraphResult:
         """The keyframe graph as the map has it now: poses, odometry (registration) and loop edges, zeta."""
@@ -363,10 +383,12 @@ def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
 
     progress: an optional callable taking the number of frames done (e.g. a tqdm bar's update).
     """
+    from plvo.data.prefetch import prefetched
+
     system = System(config, recorder)
     try:
-        for i in range(len(dataset)):
-            system.step(dataset[i])
+        for frame in prefetched(dataset):
+            system.step(frame)
             if progress is not None:
                 progress(1)
         system.finish()

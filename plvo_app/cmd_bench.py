@@ -62,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stages", default="all", help=f"all, or a comma list of {','.join(STAGE_GROUPS)}; "
                    "backend, loop and system run the whole system (system also with recording on)")
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
+    p.add_argument("--soak", action="store_true", help="instead: one whole run of the sequence as plvo-viz runs it "
+                   "(recording on), reporting per 100-frame window frames a second, memory, recording size and pose "
+                   "error, and per run the loops, corrections and losses (plvo.eval.soak); e.g. --synth DIR --seq 40 "
+                   "of `plvo synth --out DIR --seq 40 --frames 4541 --seed 7 --speed 11 --loop --stops`")
 
 
 def _open(args: argparse.Namespace):
@@ -142,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
                    frame_indices=dataset.frame_indices, gt_T_world_cam=dataset.gt_T_world_cam,
                    config=config_to_dict(cfg), version=plvo_version(), git_revision=git_revision(),
                    command_line=command, extra={"config_toml": config_to_toml(cfg)})
+    if args.soak:
+        return _soak(args, cfg, dataset, info, machine, command)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
         report = run_bench(dataset, cfg, stages, args.repeat, _rerun_factory(Path(tmp)), info)
     machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
@@ -151,6 +157,31 @@ def run(args: argparse.Namespace) -> int:
     report = {**head, **report, "input": {**report["input"], "root": str(root)}}
     write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
     print(format_table(report))
+    print(f"written: {out}")
+    return 0
+
+
+def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, command: str) -> int:
+    """`plvo bench --soak`: the whole sequence as plvo-viz runs it; the JSON of plvo.eval.soak."""
+    from tqdm import tqdm
+
+    from plvo.eval.soak import run_soak
+    from plvo_app.rerun_recorder import RerunRecorder
+
+    out = args.out or Path("results") / "bench" / f"soak_{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
+    with tempfile.TemporaryDirectory(prefix="plvo-soak-") as tmp:
+        rrd = Path(tmp) / "soak.rrd"
+        with tqdm(total=len(dataset), unit="frame", desc=f"soak {dataset.sequence}", dynamic_ncols=True) as bar:
+            report = run_soak(dataset, cfg, RerunRecorder(rrd), info, rrd, progress=bar.update)
+    machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
+    report = {"command_line": command, "git_revision": info.git_revision, "versions": versions(),
+              "machine": machine, "input": {"sequence": dataset.sequence, "frames": len(dataset)}, **report,
+              "config": config_to_dict(cfg)}
+    write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
+    f = report.get("final") or {}
+    print(f"soak {dataset.sequence}: {report['fps']:.2f} frames/s overall, windows median {report['fps_window_median']} "
+          f"worst {report['fps_window_worst']}; RSS {report['rss_mb_at']}; ATE {f.get('ate_m')} m, "
+          f"devkit {f.get('t_err_pct')} %; recording {report['recording']['bytes']} bytes")
     print(f"written: {out}")
     return 0
 
@@ -191,6 +222,11 @@ def format_table(report: dict) -> str:
                          f"{sysfig.get('recording_overhead_pct', float('nan')):.1f} % (budget <= "
                          f"{sysfig.get('recording_overhead_budget_pct', 25):g} %), "
                          f"{on['rrd_bytes_per_frame'] or 0:,} bytes of .rrd a frame")
+    dep = report.get("deployed")
+    if dep:
+        kiss = "-" if dep["kiss_icp_fps"] is None else f"{dep['kiss_icp_fps']:.2f}"
+        lines.append(f"deployed (as plvo-viz: from disk, recording on): {dep['fps']:.2f} frames/s; KISS-ICP on the "
+                     f"same scans: {kiss} frames/s")
     mem = report["memory"]
     lines.append(f"peak memory: {mem['ru_maxrss_mb']:.0f} MB (ru_maxrss), {mem['sampled_peak_mb']:.0f} MB sampled; "
                  f"bench took {report['duration_s']:.0f} s")

@@ -47,6 +47,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full)",
     )
     p.add_argument("--kiss", action="store_true", help="also run KISS-ICP (lidar only, voxel 1 m) on the same scans")
+    p.add_argument("--inline", action="store_true", help="also run each ablation inline (backend.concurrent = "
+                   "false), as column <ablation>_inline beside the deployed mode (the default, concurrent workers)")
     p.add_argument("--config", type=Path, help="plvo config TOML the ablations start from (default: built-in)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a plvo config value for every plvo run, e.g. orb.n_features=1500 (repeatable)")
@@ -155,7 +157,8 @@ def run_run(args: argparse.Namespace) -> int:
     if not ablations and not args.kiss:
         raise PlvoError("nothing to run: --ablations none and no --kiss")
     config = str(args.config.resolve()) if args.config else None
-    specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions())
+    specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions(),
+                        inline=args.inline)
     specs = with_threads(specs, kiss_threads(args.workers, args.ray))
     results = execute(specs, args.out, workers=args.workers, ray=args.ray, resume=args.resume,
                       on_result=_progress(len(specs)))

@@ -133,7 +133,7 @@ def test_workers_hold_no_map_and_every_write_goes_through_apply(synth_sequence_f
     assert writers and set(writers) == {"apply"}, set(writers)
 
 
-def _run_poses(ds, cfg, slow: dict | None = None, monkeypatch=None) -> np.ndarray:
+def _run_poses(ds, cfg) -> np.ndarray:
     from plvo.system import run_dataset
 
     return run_dataset(ds, cfg).poses

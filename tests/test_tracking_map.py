@@ -10,7 +10,8 @@ import pytest
 from plvo.config import TrackingConfig
 from plvo.geometry import se3
 from plvo.tracking.keyframes import KeyframePolicy, triangulate_tracks
-from plvo.tracking.map import FrameAssociation, LandmarkMap
+from plvo.tracking.association import FrameAssociation
+from plvo.tracking.map import LandmarkMap
 
 K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.2], [0.0, 0.0, 1.0]])
 
@@ -157,7 +158,7 @@ def test_triangulate_tracks_recovers_points_and_rejects_bad_ones():
 
 
 def test_search_by_projection_is_one_to_one_and_respects_radius_and_hamming():
-    from plvo.tracking.map import hamming, search_by_projection
+    from plvo.tracking.association import hamming, search_by_projection
 
     desc = _desc(4, 7)
     kp = np.array([[100.0, 100.0], [103.0, 100.0], [300.0, 50.0], [500.0, 200.0]])

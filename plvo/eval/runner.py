@@ -178,6 +178,9 @@ def _execute_ray(
 # ---------------------------------------------------------------- building specs
 
 
+INLINE_SUFFIX = "_inline"  # setting name of an ablation run inline (eval run --inline)
+
+
 def build_specs(
     sources: Iterable[SequenceSource],
     ablations: Sequence[str] = ("full",),
@@ -185,14 +188,21 @@ def build_specs(
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
     config_path: str | None = None,
     kiss_options: KissOptions | None = None,
+    inline: bool = False,
 ) -> list[RunSpec]:
-    """Every (sequence, setting) pair: plvo under each ablation, then KISS-ICP when asked."""
+    """Every (sequence, setting) pair: plvo under each ablation (the deployed mode: the config's concurrent
+    workers), with `inline` each also as `<ablation>_inline` (backend.concurrent = false, a fixed order of work with
+    no lag), then KISS-ICP when asked."""
     specs = []
     for source in sources:
         for ablation in ablations:
             specs.append(
                 RunSpec(source, "plvo", ablation, ablation, dict(overrides or {}), config_path)
             )
+            if inline:
+                sections = {k: dict(v) for k, v in (overrides or {}).items()}
+                sections.setdefault("backend", {})["concurrent"] = False
+                specs.append(RunSpec(source, "plvo", f"{ablation}{INLINE_SUFFIX}", ablation, sections, config_path))
         if kiss:
             specs.append(RunSpec(source, "kiss", KISS_SETTING, None, {}, None, kiss_options or KissOptions()))
     return specs

@@ -34,7 +34,8 @@ from plvo.geometry import se3
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.tracking import keyframes as kfp
 from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
-from plvo.tracking.map import FrameAssociation, LandmarkMap, search_by_projection
+from plvo.tracking.association import FrameAssociation, search_by_projection
+from plvo.tracking.map import LandmarkMap
 from plvo.tracking.pnpl import refine_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
 from plvo.results import TrackingResult
