@@ -5,6 +5,7 @@ from __future__ import annotations
 from plvo.config import SystemConfig, config_to_dict, merge
 from plvo.recording import NullRecorder, RunInfo
 
+
 def test_soak_report_describes_the_run(synth_sequence_factory, tmp_path):
     from plvo.data.kitti import KittiOdometry
     from plvo.eval.soak import run_soak

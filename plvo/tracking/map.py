@@ -123,6 +123,8 @@ class LandmarkMap:
         self._kfs = _Columns({"frame": ((), np.int64, -1), "T_world_cam": ((4, 4), np.float64, np.nan)})
         self._kfs.cols["T_world_cam"].flags.writeable = False
         self.edges: list[GraphEdge] = []
+        # per keyframe, the number of observation rows when it was made (points, lines): see _window_obs
+        self._obs_start: dict[bool, list[int]] = {False: [], True: []}
         self.applied: dict[str, int] = {}  # corrections applied, by source
 
     # ---- sizes -------------------------------------------------------------------------------------------
@@ -148,6 +150,8 @@ class LandmarkMap:
             self._kfs.cols["T_world_cam"].flags.writeable = True
             row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
             self._kfs.cols["T_world_cam"].flags.writeable = False
+            self._obs_start[False].append(self._pobs.n)
+            self._obs_start[True].append(self._lobs.n)
             self.version += 1
             return int(row[0])
 
@@ -349,7 +353,9 @@ class LandmarkMap:
             current = self._kfs["T_world_cam"]
             new, D, M = corrected_poses(correction, current)
             kf_ids = np.arange(len(new))
-            changed = np.flatnonzero(np.any(np.abs(D - np.eye(4)) > 0, axis=(1, 2)))
+            # Keyframes the correction left exactly where they were (new == current) are not touched, so that a
+            # window's correction costs what the window holds, not what the whole map holds.
+            changed = np.flatnonzero(np.any(new != current, axis=(1, 2)))
             cids = np.asarray(correction.keyframe_ids, np.int64)
             cids = cids[cids < len(current)]
             pt_ids, pts = self._moved(self._pts, "position", changed, D, correction.point_ids,
@@ -362,9 +368,12 @@ class LandmarkMap:
                refined: np.ndarray, cids: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Landmark ids and new positions: the refined ones rebased by their creator's motion since the snapshot,
         the others created by a changed keyframe moved with it."""
-        first = store["first_kf"]
+        first = store["first_kf"]  # non-decreasing: landmarks are made by the newest keyframe
         ids = np.asarray(ids, np.int64)
-        others = np.setdiff1d(np.flatnonzero(store["alive"] & np.isin(first, changed)), ids)
+        start = int(np.searchsorted(first, changed.min())) if len(changed) else len(first)
+        tail = np.arange(start, len(first))
+        tail = tail[store["alive"][start:] & np.isin(first[start:], changed)]
+        others = np.setdiff1d(tail, ids)
         shape = store.cols[column].shape[1:]
         k = int(np.prod(shape)) // 3  # 3D points a landmark: 1 for points, 2 endpoints for lines
         moved = move_points(store[column][others].reshape(-1, 3), np.repeat(first[others], k), D)
@@ -393,12 +402,15 @@ class LandmarkMap:
             out.update(line_ids=lns[0], lines=lns[1], ln_kf=lns[2], ln_idx=lns[3], ln_seg=lns[4], ln_prior=lns[5])
         return WindowData(**out)
 
-    @staticmethod
-    def _window_obs(store: _Columns, obs: _Columns, column: str, kf_ids: np.ndarray):
-        lm = obs["landmark"]
-        keep = np.isin(obs["keyframe"], kf_ids)
+    def _window_obs(self, store: _Columns, obs: _Columns, column: str, kf_ids: np.ndarray):
+        # A keyframe's observations are recorded from when it is made on (the triangulation ablation adds some to
+        # the keyframe before it then): the window's all lie after its first keyframe's start.
+        start = int(self._obs_start[obs is self._lobs][int(kf_ids.min())]) if len(kf_ids) else obs.n
+        lm = obs["landmark"][start:]
+        keep = np.isin(obs["keyframe"][start:], kf_ids)
         keep &= store["alive"][lm] if len(lm) else np.zeros(0, bool)
-        rows = np.flatnonzero(keep)
+        rows = start + np.flatnonzero(keep)
+        lm = obs["landmark"]
         ids, idx = np.unique(lm[rows], return_inverse=True)
         return (ids, store[column][ids].copy(), np.searchsorted(kf_ids, obs["keyframe"][rows]), idx,
                 obs["measurement"][rows].copy(), obs["prior"][rows].copy())
