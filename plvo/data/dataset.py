@@ -7,6 +7,7 @@ carries the dataset's own frame number in `Frame.index`. Images and scans are re
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -92,3 +93,19 @@ def select_frames(frames: FrameSelection, n: int, where: str) -> tuple[int, ...]
     if len(selected) == 0:
         raise DatasetError(f"frames {label}: no frame selected, {where} has frames 0..{n - 1}")
     return tuple(int(i) for i in selected)
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """What a bag or a plain folder cannot tell by itself (all optional; the CLIs' --image-topic, --cloud-topic,
+    --calib, --max-pair-dt).
+
+    image_topic, cloud_topic: topics to read (None: the only one of its kind). calib: calibration YAML
+    (plvo.data.calib_yaml; None: the bag's CameraInfo and /tf_static, or the folder's calib.yaml). max_pair_dt:
+    seconds an image and its scan may be apart.
+    """
+
+    image_topic: str | None = None
+    cloud_topic: str | None = None
+    calib: str | None = None
+    max_pair_dt: float = 0.05
