@@ -20,7 +20,7 @@ from plvo.geometry import se3
 BASE_S = 1_700_000_000.0
 SCAN_LAG_S = 0.012
 T_BASE_VELO = np.array([[1.0, 0, 0, 0.3], [0, 1, 0, 0.0], [0, 0, 1, 1.73], [0, 0, 0, 1]])
-CLOUD_LAYOUTS = ("xyzi", "padded_time", "ouster")
+CLOUD_LAYOUTS = ("xyzi", "padded_time", "ouster")  # and "no_xyz", a layout the reader must refuse
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,8 @@ class BagSpec:
     image_topic: str = "/camera/image_raw"
     cloud_topic: str = "/velodyne_points"
     extra_image_topic: str | None = None  # a second image topic (for the "two candidates" error)
+    images: bool = True  # False: no image topic at all
+    drop_scans: tuple[int, ...] = ()  # frames whose scan is not written (a lidar dropout)
     scan_lag_s: float = SCAN_LAG_S
 
 
@@ -71,6 +73,8 @@ class _Msgs:
         n = len(scan)
         if layout == "xyzi":
             names, offsets, types, step = "x y z intensity".split(), [0, 4, 8, 12], [7, 7, 7, 7], 16
+        elif layout == "no_xyz":  # a range image: no cartesian fields
+            names, offsets, types, step = "x range_m azimuth intensity".split(), [0, 4, 8, 12], [7, 7, 7, 7], 16
         elif layout == "padded_time":  # PCL PointXYZIR + time: x y z (pad) intensity ring (pad) time
             names, offsets, types, step = "x y z intensity ring time".split(), [0, 4, 8, 16, 20, 24], \
                 [7, 7, 7, 7, 4, 7], 32
@@ -80,7 +84,9 @@ class _Msgs:
         np_types = {4: "<u2", 6: "<u4", 7: "<f4"}
         rec = np.zeros(n, dtype=np.dtype({"names": names, "formats": [np_types[t] for t in types],
                                           "offsets": offsets, "itemsize": step}))
-        rec["x"], rec["y"], rec["z"], rec["intensity"] = scan[:, 0], scan[:, 1], scan[:, 2], scan[:, 3]
+        for k, name in enumerate(("x", "y", "z", "intensity")):
+            if name in names:
+                rec[name] = scan[:, k]
         azimuth = np.arctan2(scan[:, 1], scan[:, 0])
         fraction = (np.pi - azimuth) / (2 * np.pi)  # sweep time, 0..0.1 s
         if "time" in names:
@@ -131,7 +137,8 @@ def write_bag(path: Path, dataset, spec: BagSpec = BagSpec(), color: bool = Fals
         plugin = StoragePlugin.MCAP if spec.storage == "mcap" else StoragePlugin.SQLITE3
         writer = Writer2(path, version=9, storage_plugin=plugin)
     image_type = "sensor_msgs/msg/CompressedImage" if spec.compressed else "sensor_msgs/msg/Image"
-    topics = [(spec.image_topic, image_type), (spec.cloud_topic, "sensor_msgs/msg/PointCloud2")]
+    topics = [(spec.image_topic, image_type)] if spec.images else []
+    topics.append((spec.cloud_topic, "sensor_msgs/msg/PointCloud2"))
     if spec.extra_image_topic:
         topics.append((spec.extra_image_topic, image_type))
     if spec.camera_info:
@@ -152,12 +159,14 @@ def write_bag(path: Path, dataset, spec: BagSpec = BagSpec(), color: bool = Fals
             frame = dataset[i]
             t = BASE_S + float(frame.time)
             image = frame.color if (color and frame.color is not None) else frame.image
-            put(spec.image_topic, t, m.image(t, image, spec.compressed))
+            if spec.images:
+                put(spec.image_topic, t, m.image(t, image, spec.compressed))
             if spec.extra_image_topic:
                 put(spec.extra_image_topic, t, m.image(t, image, spec.compressed))
             if spec.camera_info:
                 put(spec.image_topic.rsplit("/", 1)[0] + "/camera_info", t, m.camera_info(t, dataset.calib))
-            put(spec.cloud_topic, t + spec.scan_lag_s, m.cloud(t + spec.scan_lag_s, frame.scan, spec.cloud_layout))
+            if i not in spec.drop_scans:
+                put(spec.cloud_topic, t + spec.scan_lag_s, m.cloud(t + spec.scan_lag_s, frame.scan, spec.cloud_layout))
     if spec.ros == 2 and spec.storage == "mcap":
         return next(Path(path).glob("*.mcap"))  # the bare .mcap file, as a user may have it
     return Path(path)

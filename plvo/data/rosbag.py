@@ -65,30 +65,31 @@ def _open_reader(path: Path):
 
 
 def _choose(path: Path, connections: list, wanted: str | None, types: tuple[str, ...], kind: str, option: str):
-    """The connection of the chosen topic: the named one, else the only one of `types`."""
+    """(topic, msgtype) chosen: the named topic, else the only one of `types`."""
     topics = {c.topic: c for c in connections}
     if wanted is not None:
         if wanted not in topics:
             raise DatasetError(f"{path}: no topic {wanted!r} ({option}); topics: {', '.join(sorted(topics))}")
         if topics[wanted].msgtype not in types:
             raise DatasetError(f"{path}: topic {wanted!r} is {topics[wanted].msgtype}, not {' or '.join(types)}")
-        return topics[wanted]
+        return wanted, topics[wanted].msgtype
     found = sorted({c.topic for c in connections if c.msgtype in types})
     if not found:
         listing = ", ".join(f"{c.topic} ({c.msgtype})" for c in connections) or "none"
         raise DatasetError(f"{path}: no {kind} topic ({' or '.join(types)}); topics: {listing}")
     if len(found) > 1:
         raise DatasetError(f"{path}: {len(found)} {kind} topics ({', '.join(found)}): choose one with {option}")
-    return topics[found[0]]
+    return found[0], topics[found[0]].msgtype
 
 
 def _camera_info(connections: list, image_topic: str):
-    """The CameraInfo beside the image topic (same namespace), else the only one, else None."""
-    infos = [c for c in connections if c.msgtype == INFO_TYPE]
+    """The CameraInfo topic beside the image topic (same namespace, or one up for image_raw/compressed), else the
+    only one, else None."""
+    infos = sorted({c.topic for c in connections if c.msgtype == INFO_TYPE})
     namespace = image_topic.rsplit("/", 1)[0]
-    for c in infos:
-        if c.topic.rsplit("/", 1)[0] == namespace or c.topic == image_topic.rsplit("/", 2)[0] + "/camera_info":
-            return c
+    for topic in infos:
+        if topic.rsplit("/", 1)[0] == namespace or topic == image_topic.rsplit("/", 2)[0] + "/camera_info":
+            return topic
     return infos[0] if len(infos) == 1 else None
 
 
@@ -114,26 +115,27 @@ class RosbagDataset:
         self._reader_pid, self._reader_obj = None, None
         reader = self._reader()
         conns = list(reader.connections)
-        self._image_conn = _choose(self.path, conns, opts.image_topic, IMAGE_TYPES, "image", "--image-topic")
-        self._cloud_conn = _choose(self.path, conns, opts.cloud_topic, (CLOUD_TYPE,), "point cloud", "--cloud-topic")
-        info_conn = _camera_info(conns, self._image_conn.topic)
-        tf_conns = [c for c in conns if c.msgtype == TF_TYPE and c.topic in TF_STATIC_TOPICS]
-        images, scans, first = self._index(reader, info_conn, tf_conns, opts.calib is None)
+        self.image_topic, self._image_type = _choose(self.path, conns, opts.image_topic, IMAGE_TYPES, "image",
+                                                     "--image-topic")
+        self.cloud_topic, _ = _choose(self.path, conns, opts.cloud_topic, (CLOUD_TYPE,), "point cloud",
+                                      "--cloud-topic")
+        images, scans, first = self._index(reader, _camera_info(conns, self.image_topic))
         self._pair(images, scans, opts.max_pair_dt)
         selected = select_frames(frames, len(self._pairs), f"bag {self.path} ({len(self._pairs)} paired frames)")
         self._frames = selected
         self.calib, self._rectify = self._calibration(opts, first)
         self._times = np.array([1e-9 * self._pairs[k][0].stamp_ns for k in selected])
-        log.info("%s: %d frames of %s + %s, %dx%d", self.path, len(selected), self._image_conn.topic,
-                 self._cloud_conn.topic, self.calib.width, self.calib.height)
+        log.info("%s: %d frames of %s + %s, %dx%d", self.path, len(selected), self.image_topic,
+                 self.cloud_topic, self.calib.width, self.calib.height)
 
     # --- indexing ---------------------------------------------------------------------------------------------
 
-    def _index(self, reader, info_conn, tf_conns, need_bag_calib: bool):
+    def _index(self, reader, info_topic: str | None):
         images, scans, ranks = [], [], {}
         self._info, self._tf = None, StaticTransforms()
         first: dict[str, object] = {}
-        wanted = [self._image_conn, self._cloud_conn] + ([info_conn] if info_conn else []) + tf_conns
+        wanted = [c for c in reader.connections if c.topic in (self.image_topic, self.cloud_topic, info_topic)
+                  or (c.msgtype == TF_TYPE and c.topic in TF_STATIC_TOPICS)]
         for conn, bag_ns, raw in reader.messages(connections=wanted):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
@@ -143,22 +145,22 @@ class RosbagDataset:
             if conn.msgtype == TF_TYPE:
                 self._tf.add(msg)
                 continue
-            if conn is info_conn:
+            if conn.topic == info_topic:
                 self._info = self._info or msg
                 continue
             key = (conn.topic, bag_ns)
             ranks[key] = ranks.get(key, -1) + 1
             ref = _Ref(bag_ns, ranks[key], stamp_ns(msg, bag_ns))
-            if conn is self._image_conn:
+            if conn.topic == self.image_topic:
                 images.append(ref)
                 first.setdefault("image", msg)
             else:
                 scans.append(ref)
                 first.setdefault("cloud", msg)
         if not images:
-            raise DatasetError(f"{self.path}: topic {self._image_conn.topic} has no messages")
+            raise DatasetError(f"{self.path}: topic {self.image_topic} has no messages")
         if not scans:
-            raise DatasetError(f"{self.path}: topic {self._cloud_conn.topic} has no messages")
+            raise DatasetError(f"{self.path}: topic {self.cloud_topic} has no messages")
         return images, scans, first
 
     def _pair(self, images: list[_Ref], scans: list[_Ref], max_dt: float) -> None:
@@ -170,7 +172,7 @@ class RosbagDataset:
         if not ok.any():
             i = int(np.argmin(np.abs(scan_ns[nearest] - image_ns)))
             raise DatasetError(
-                f"{self.path}: no image on {self._image_conn.topic} has a scan on {self._cloud_conn.topic} within "
+                f"{self.path}: no image on {self.image_topic} has a scan on {self.cloud_topic} within "
                 f"{max_dt:g} s: closest pair is image stamp {image_ns[i] * 1e-9:.6f} s and scan stamp "
                 f"{scan_ns[nearest[i]] * 1e-9:.6f} s (--max-pair-dt raises the limit)")
         if not ok.all():
@@ -181,7 +183,7 @@ class RosbagDataset:
         self._pairs = [(images[i], scans[int(nearest[i])]) for i in np.flatnonzero(ok)]
 
     def _calibration(self, opts: SourceOptions, first: dict):
-        image = image_array(first["image"], self._image_conn.msgtype, f"{self.path} {self._image_conn.topic}")
+        image = image_array(first["image"], self._image_type, f"{self.path} {self.image_topic}")
         height, width = image.shape[:2]
         if opts.calib is not None:
             cf = read_calib_yaml(opts.calib)
@@ -191,12 +193,12 @@ class RosbagDataset:
             offset, source = 0.0, f"{self.path} CameraInfo"
         if (camera.width, camera.height) != (width, height):
             raise CalibrationError(f"{source}: calibration is for {camera.width}x{camera.height} images, but "
-                                   f"{self._image_conn.topic} has {width}x{height}")
+                                   f"{self.image_topic} has {width}x{height}")
         return camera.calibration(T_cam_lidar, offset), camera.rectifier()
 
     def _bag_calibration(self, first: dict):
         if self._info is None:
-            raise CalibrationError(f"{self.path}: no calibration: no CameraInfo topic for {self._image_conn.topic} "
+            raise CalibrationError(f"{self.path}: no calibration: no CameraInfo topic for {self.image_topic} "
                                    "in the bag; give a calibration YAML with --calib")
         camera = camera_model(self._info, f"{self.path} CameraInfo")
         cam_frame = self._info.header.frame_id or first["image"].header.frame_id
@@ -226,12 +228,13 @@ class RosbagDataset:
             self._reader_obj.close()
         self._reader_obj = None
 
-    def _message(self, conn, ref: _Ref):
+    def _message(self, topic: str, ref: _Ref):
         reader = self._reader()
-        for k, (_, _, raw) in enumerate(reader.messages(connections=[conn], start=ref.bag_ns, stop=ref.bag_ns + 1)):
+        conns = [c for c in reader.connections if c.topic == topic]
+        for k, (conn, _, raw) in enumerate(reader.messages(connections=conns, start=ref.bag_ns, stop=ref.bag_ns + 1)):
             if k == ref.rank:
                 return reader.deserialize(raw, conn.msgtype)
-        raise DatasetError(f"{self.path}: {conn.topic} message at {ref.bag_ns * 1e-9:.6f} s vanished from the bag")
+        raise DatasetError(f"{self.path}: {topic} message at {ref.bag_ns * 1e-9:.6f} s vanished from the bag")
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -242,16 +245,16 @@ class RosbagDataset:
             raise IndexError(f"position {i} out of range for {n} frames")
         k = self._frames[i % n]
         image_ref, scan_ref = self._pairs[k]
-        where = f"{self.path} {self._image_conn.topic} at stamp {image_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
-        raw = image_array(self._message(self._image_conn, image_ref), self._image_conn.msgtype, where)
+        where = f"{self.path} {self.image_topic} at stamp {image_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
+        raw = image_array(self._message(self.image_topic, image_ref), self._image_type, where)
         if raw.shape[:2] != (self.calib.height, self.calib.width):
             raise DatasetError(f"{where}: image is {raw.shape[1]}x{raw.shape[0]}, the calibration's "
                                f"{self.calib.width}x{self.calib.height}")
         if self._rectify is not None:
             raw = self._rectify(raw)
         gray, color = split_gray_color(raw)
-        cloud_where = f"{self.path} {self._cloud_conn.topic} at stamp {scan_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
-        scan, scan_time = cloud_scan(self._message(self._cloud_conn, scan_ref), cloud_where)
+        cloud_where = f"{self.path} {self.cloud_topic} at stamp {scan_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
+        scan, scan_time = cloud_scan(self._message(self.cloud_topic, scan_ref), cloud_where)
         return Frame(index=k, time=1e-9 * image_ref.stamp_ns, image=gray, scan=scan, calib=self.calib,
                      gt_T_world_cam=None, color=color, scan_time=scan_time)
 
@@ -266,13 +269,5 @@ class RosbagDataset:
     @property
     def times(self) -> np.ndarray:
         return self._times.copy()
-
-    @property
-    def image_topic(self) -> str:
-        return self._image_conn.topic
-
-    @property
-    def cloud_topic(self) -> str:
-        return self._cloud_conn.topic
 
 
