@@ -116,7 +116,8 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
     from plvo.data.rosbag import is_bag
 
     extra = dict(camera=args.camera, image_topic=args.image_topic, cloud_topic=args.cloud_topic,
-                 calib=None if args.calib is None else str(Path(args.calib).resolve()), max_pair_dt=args.max_pair_dt)
+                 calib=None if args.calib is None else str(Path(args.calib).resolve()), max_pair_dt=args.max_pair_dt,
+                 lidar_elevation_offset_deg=args.lidar_elevation_offset)
     if args.root is not None and (is_bag(args.root) or is_folder(args.root)):  # a recording: one sequence
         name = args.root.stem if args.root.is_file() else args.root.resolve().name
         sources.append(SequenceSource(str(args.root.resolve()), name, args.frames, **extra))

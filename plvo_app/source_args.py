@@ -20,8 +20,11 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
                         "/tf_static, or the folder's calib.yaml")
     g.add_argument("--max-pair-dt", type=float, default=SourceOptions.max_pair_dt, metavar="S",
                    help="bag: seconds an image and its scan may be apart (default %(default)s)")
+    g.add_argument("--lidar-elevation-offset", type=float, default=None, metavar="DEG",
+                   help="bag/folder: the lidar's vertical-angle error in degrees (KITTI's HDL-64E: 0.205); default "
+                        "the calibration YAML's, else 0")
 
 
 def source_options(args: argparse.Namespace) -> SourceOptions:
     return SourceOptions(image_topic=args.image_topic, cloud_topic=args.cloud_topic, calib=args.calib,
-                         max_pair_dt=args.max_pair_dt)
+                         max_pair_dt=args.max_pair_dt, lidar_elevation_offset_deg=args.lidar_elevation_offset)

@@ -103,19 +103,35 @@ def test_frame_selection_and_pickling(town, tmp_path):
         ds[3]
 
 
-@pytest.mark.slow
-def test_pipeline_on_bag_matches_kitti_layout_run(town, tmp_path):
+def _compare_runs(ref, bag) -> float:
     from plvo.system import run_dataset
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
-    bag = RosbagDataset(write_bag(tmp_path / "town", town, BagSpec(ros=2, compressed=True,
-                                                                     cloud_layout="padded_time")))
-    ref_run, bag_run = run_dataset(town, cfg), run_dataset(bag, cfg)
-    assert ref_run.n_keyframes >= 2
-    drift = np.linalg.norm(ref_run.poses[-1, :3, 3] - town.gt_T_world_cam[-1, :3, 3])
+    ref_run, bag_run = run_dataset(ref, cfg), run_dataset(bag, cfg)
+    assert ref_run.n_keyframes >= 2 and ref_run.n_lost == 0
+    drift = np.linalg.norm(ref_run.poses[-1, :3, 3] - ref.gt_T_world_cam[-1, :3, 3])
     assert drift < 1.0  # the run itself is sane
-    gap = np.linalg.norm(bag_run.poses[:, :3, 3] - ref_run.poses[:, :3, 3], axis=1)
-    assert gap.max() < 0.01, f"bag run differs from the KITTI-layout run by up to {gap.max():.4f} m"
+    gap = np.linalg.norm(bag_run.poses[:, :3, 3] - ref_run.poses[:, :3, 3], axis=1).max()
+    assert gap < 0.01, f"bag run differs from the KITTI-layout run by up to {gap:.4f} m"
+    return gap
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, spec, by_file", [VARIANTS[1], VARIANTS[4]], ids=[VARIANTS[k][0] for k in (1, 4)])
+def test_pipeline_on_town_bag_matches_kitti_layout_run(town, tmp_path, name, spec, by_file):
+    _compare_runs(town, _open_variant(tmp_path, town, name, spec, by_file))
+
+
+@pytest.mark.slow
+@pytest.mark.kitti
+@pytest.mark.parametrize("name, spec, by_file", [VARIANTS[0], VARIANTS[3]], ids=[VARIANTS[k][0] for k in (0, 3)])
+def test_pipeline_on_real_04_bag_matches_kitti_layout_run(kitti_root, tmp_path, name, spec, by_file):
+    ref = KittiOdometry(kitti_root, "04", frames=slice(0, TOWN_FRAMES))
+    bag = write_bag(_bag_path(tmp_path, name, spec), ref, spec)
+    # CameraInfo + TF cannot carry the HDL-64E's elevation offset: the user gives it (--lidar-elevation-offset)
+    opts = SourceOptions(calib=_calib_file(tmp_path, ref) if by_file else None,
+                         lidar_elevation_offset_deg=None if by_file else ref.calib.lidar_elevation_offset_deg)
+    _compare_runs(ref, RosbagDataset(bag, options=opts))
 
 
 # --- bad bags: one line each, naming the bag, topic or field --------------------------------------------------

@@ -102,10 +102,13 @@ class SourceOptions:
 
     image_topic, cloud_topic: topics to read (None: the only one of its kind). calib: calibration YAML
     (plvo.data.calib_yaml; None: the bag's CameraInfo and /tf_static, or the folder's calib.yaml). max_pair_dt:
-    seconds an image and its scan may be apart.
+    seconds an image and its scan may be apart. lidar_elevation_offset_deg: the lidar's vertical-angle error
+    (Calibration.lidar_elevation_offset_deg; KITTI's HDL-64E: 0.205), overriding the calibration YAML's (None: the
+    YAML's, or 0 for CameraInfo + TF, which cannot carry it).
     """
 
     image_topic: str | None = None
     cloud_topic: str | None = None
     calib: str | None = None
     max_pair_dt: float = 0.05
+    lidar_elevation_offset_deg: float | None = None

@@ -113,7 +113,8 @@ class FolderDataset:
         if (cf.camera.width, cf.camera.height) != (first.shape[1], first.shape[0]):
             raise DatasetError(f"{calib_path}: calibration is for {cf.camera.width}x{cf.camera.height} images, but "
                                f"{self._images[self._frames[0]]} is {first.shape[1]}x{first.shape[0]}")
-        self.calib = cf.camera.calibration(cf.T_cam_lidar, cf.elevation_offset_deg)
+        offset = cf.elevation_offset_deg if opts.lidar_elevation_offset_deg is None else opts.lidar_elevation_offset_deg
+        self.calib = cf.camera.calibration(cf.T_cam_lidar, offset)
         self._rectify = cf.camera.rectifier()
         times_file, poses_file = self.root / "times.txt", self.root / "poses.txt"
         all_times = _read_times(times_file, n) if times_file.is_file() else DEFAULT_PERIOD_S * np.arange(n)

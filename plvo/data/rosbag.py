@@ -194,6 +194,8 @@ class RosbagDataset:
         if (camera.width, camera.height) != (width, height):
             raise CalibrationError(f"{source}: calibration is for {camera.width}x{camera.height} images, but "
                                    f"{self.image_topic} has {width}x{height}")
+        if opts.lidar_elevation_offset_deg is not None:
+            offset = opts.lidar_elevation_offset_deg
         return camera.calibration(T_cam_lidar, offset), camera.rectifier()
 
     def _bag_calibration(self, first: dict):

@@ -54,6 +54,7 @@ class SequenceSource:
     cloud_topic: str | None = None
     calib: str | None = None
     max_pair_dt: float = SourceOptions.max_pair_dt
+    lidar_elevation_offset_deg: float | None = None
 
     @property
     def name(self) -> str:
@@ -61,7 +62,8 @@ class SequenceSource:
 
     def open(self) -> Dataset:
         frames = parse_frames(self.frames) if self.frames else None
-        options = SourceOptions(self.image_topic, self.cloud_topic, self.calib, self.max_pair_dt)
+        options = SourceOptions(self.image_topic, self.cloud_topic, self.calib, self.max_pair_dt,
+                                self.lidar_elevation_offset_deg)
         return open_dataset(self.root, self.sequence, frames=frames, camera=self.camera, options=options)
 
 
