@@ -117,7 +117,7 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
 
     extra = dict(camera=args.camera, image_topic=args.image_topic, cloud_topic=args.cloud_topic,
                  calib=None if args.calib is None else str(Path(args.calib).resolve()), max_pair_dt=args.max_pair_dt,
-                 lidar_elevation_offset_deg=args.lidar_elevation_offset)
+                 lidar_elevation_offset_deg=args.lidar_elevation_offset, beams=args.beams)
     if args.root is not None and (is_bag(args.root) or is_folder(args.root)):  # a recording: one sequence
         name = args.root.stem if args.root.is_file() else args.root.resolve().name
         sources.append(SequenceSource(str(args.root.resolve()), name, args.frames, **extra))
@@ -128,7 +128,7 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
         sources += [SequenceSource(str(Path(root).resolve()), s, args.frames, **extra) for s in args.seq]
     elif args.root is not None:
         raise PlvoError("--root given without --seq: name the sequences to run, e.g. --seq 00 04")
-    sources += synth_sources(args.synth, args.frames)
+    sources += [replace(s, **extra) for s in synth_sources(args.synth, args.frames)]
     if not sources:
         raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., or --synth DIR")
     return _label(sources)

@@ -23,8 +23,11 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--lidar-elevation-offset", type=float, default=None, metavar="DEG",
                    help="bag/folder: the lidar's vertical-angle error in degrees (KITTI's HDL-64E: 0.205); default "
                         "the calibration YAML's, else 0")
+    g.add_argument("--beams", type=int, default=None, choices=(8, 16, 32, 64),
+                   help="resample the 64-beam scans to this many beams by elevation ring (a sparser lidar)")
 
 
 def source_options(args: argparse.Namespace) -> SourceOptions:
     return SourceOptions(image_topic=args.image_topic, cloud_topic=args.cloud_topic, calib=args.calib,
-                         max_pair_dt=args.max_pair_dt, lidar_elevation_offset_deg=args.lidar_elevation_offset)
+                         max_pair_dt=args.max_pair_dt, lidar_elevation_offset_deg=args.lidar_elevation_offset,
+                         beams=args.beams)

@@ -104,7 +104,8 @@ class SourceOptions:
     (plvo.data.calib_yaml; None: the bag's CameraInfo and /tf_static, or the folder's calib.yaml). max_pair_dt:
     seconds an image and its scan may be apart. lidar_elevation_offset_deg: the lidar's vertical-angle error
     (Calibration.lidar_elevation_offset_deg; KITTI's HDL-64E: 0.205), overriding the calibration YAML's (None: the
-    YAML's, or 0 for CameraInfo + TF, which cannot carry it).
+    YAML's, or 0 for CameraInfo + TF, which cannot carry it). beams: resample the (HDL-64E) scans to 16 or 32
+    beams by ring, of any source (None: as recorded).
     """
 
     image_topic: str | None = None
@@ -112,3 +113,4 @@ class SourceOptions:
     calib: str | None = None
     max_pair_dt: float = 0.05
     lidar_elevation_offset_deg: float | None = None
+    beams: int | None = None  # resample 64-beam scans to this many beams (plvo.lidar.beams); None: as recorded

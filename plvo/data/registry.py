@@ -126,6 +126,16 @@ def open_dataset(
     `root/sequences/town` opens as KITTI odometry although `town` is not two digits); else the name's form decides
     what was looked for.
     """
+    dataset = _open(root, sequence, frames, camera, options)
+    if options is not None and options.beams is not None:
+        from plvo.lidar.beams import BeamResampled
+
+        return BeamResampled(dataset, options.beams)
+    return dataset
+
+
+def _open(root: Path | str | None, sequence: str | None, frames: FrameSelection, camera: int,
+          options: SourceOptions | None) -> Dataset:
     if root is not None and is_bag(root):
         return RosbagDataset(root, frames=frames, options=options)
     if root is not None and is_folder(root):

@@ -55,6 +55,7 @@ class SequenceSource:
     calib: str | None = None
     max_pair_dt: float = SourceOptions.max_pair_dt
     lidar_elevation_offset_deg: float | None = None
+    beams: int | None = None
 
     @property
     def name(self) -> str:
@@ -63,7 +64,7 @@ class SequenceSource:
     def open(self) -> Dataset:
         frames = parse_frames(self.frames) if self.frames else None
         options = SourceOptions(self.image_topic, self.cloud_topic, self.calib, self.max_pair_dt,
-                                self.lidar_elevation_offset_deg)
+                                self.lidar_elevation_offset_deg, self.beams)
         return open_dataset(self.root, self.sequence, frames=frames, camera=self.camera, options=options)
 
 
