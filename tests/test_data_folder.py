@@ -126,3 +126,17 @@ def test_distorted_images_are_rectified(town, tmp_path):
     err_raw = np.abs(raw - ideal)[inner].mean()
     print(f"mean abs grey error: rectified {err_rectified:.2f}, raw {err_raw:.2f}")
     assert err_rectified < 4.0 and err_rectified < 0.3 * err_raw, (err_rectified, err_raw)
+
+
+def test_readme_calibration_example_is_kitti_04(kitti_root, tmp_path):
+    """The README's calibration YAML reads, and is sequence 04's calibration."""
+    import re
+    from pathlib import Path
+
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    block = re.search(r"```yaml\n(.*?)```", readme.read_text(), re.S).group(1)
+    (tmp_path / "c.yaml").write_text(block)
+    cf = read_calib_yaml(tmp_path / "c.yaml")
+    ref = KittiOdometry(kitti_root, "04", frames=slice(0, 1)).calib
+    np.testing.assert_allclose(cf.camera.K, ref.K, atol=1e-9)
+    np.testing.assert_allclose(cf.T_cam_lidar, ref.T_cam_velo, atol=1e-6)
