@@ -108,11 +108,12 @@ def _resolve_root(root: Path | str | None, sequence: str, layout: Layout | None)
 def no_root_message(what: str) -> str:
     """The one line for a KITTI sequence asked for without a dataset: what to download, what to set, what runs
     without it."""
-    return (f"{what}: no dataset root: download the KITTI odometry 'grayscale' (or 'color') images, 'velodyne "
-            f"laser data', 'calibration files' and 'ground truth poses' from {KITTI_DOWNLOAD}, unpack them into one "
-            f"folder (sequences/NN/, poses/) and give it as --root DIR or set ${ROOT_ENV}; without KITTI, `plvo-viz` "
-            f"with no --seq runs the synthetic town, `plvo synth --out DIR --follow POSES.txt` writes a twin of a "
-            f"KITTI sequence for --root DIR, and --root also takes a ROS bag or a plain folder (README: Your own data)")
+    return (f"{what}: no dataset root given and ${ROOT_ENV} is not set: download the KITTI odometry 'grayscale' "
+            f"(or 'color') images, 'velodyne laser data', 'calibration files' and 'ground truth poses' from "
+            f"{KITTI_DOWNLOAD}, unpack them into one folder (sequences/NN/, poses/) and give it as --root DIR or set "
+            f"${ROOT_ENV}; without KITTI, `plvo-viz` with no --seq runs the synthetic town, `plvo synth --out DIR "
+            f"--follow POSES.txt` writes a twin of a KITTI sequence for --root DIR, and --root also takes a ROS bag "
+            f"or a plain folder (README: Your own data)")
 
 
 def open_dataset(
