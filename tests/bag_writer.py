@@ -37,6 +37,7 @@ class BagSpec:
     extra_image_topic: str | None = None  # a second image topic (for the "two candidates" error)
     images: bool = True  # False: no image topic at all
     drop_scans: tuple[int, ...] = ()  # frames whose scan is not written (a lidar dropout)
+    distortion: tuple[float, ...] = ()  # CameraInfo D (plumb_bob); the images must have been taken so
     scan_lag_s: float = SCAN_LAG_S
 
 
@@ -98,13 +99,14 @@ class _Msgs:
             header=self.header(t_s, "velodyne"), height=1, width=n, fields=fields, is_bigendian=False,
             point_step=step, row_step=step * n, data=rec.view(np.uint8).reshape(-1).copy(), is_dense=True)
 
-    def camera_info(self, t_s: float, calib):
+    def camera_info(self, t_s: float, calib, distortion=()):
         K = np.asarray(calib.K, dtype=np.float64)
         P = np.zeros((3, 4))
         P[:, :3] = K
         roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                          do_rectify=False)
-        fields = {"d": np.zeros(5), "k": K.reshape(-1), "r": np.eye(3).reshape(-1), "p": P.reshape(-1)}
+        D = np.asarray(distortion, dtype=np.float64) if len(distortion) else np.zeros(5)
+        fields = {"d": D, "k": K.reshape(-1), "r": np.eye(3).reshape(-1), "p": P.reshape(-1)}
         if self.ros == 1:
             fields = {k.upper(): v for k, v in fields.items()}
         return self.T["sensor_msgs/msg/CameraInfo"](
@@ -164,9 +166,19 @@ def write_bag(path: Path, dataset, spec: BagSpec = BagSpec(), color: bool = Fals
             if spec.extra_image_topic:
                 put(spec.extra_image_topic, t, m.image(t, image, spec.compressed))
             if spec.camera_info:
-                put(spec.image_topic.rsplit("/", 1)[0] + "/camera_info", t, m.camera_info(t, dataset.calib))
+                put(spec.image_topic.rsplit("/", 1)[0] + "/camera_info", t, m.camera_info(t, dataset.calib, spec.distortion))
             if i not in spec.drop_scans:
                 put(spec.cloud_topic, t + spec.scan_lag_s, m.cloud(t + spec.scan_lag_s, frame.scan, spec.cloud_layout))
     if spec.ros == 2 and spec.storage == "mcap":
         return next(Path(path).glob("*.mcap"))  # the bare .mcap file, as a user may have it
     return Path(path)
+
+
+def distort_image(ideal: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The image a lens with distortion D would have taken of the ideal pinhole image (same K)."""
+    h, w = ideal.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pts = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2)
+    undist = cv2.undistortPoints(pts, K, D, None, None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-6))
+    maps = undist.reshape(h, w, 2).astype(np.float32)
+    return cv2.remap(ideal, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR)

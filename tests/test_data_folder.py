@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from bag_writer import distort_image
+
 from plvo.data.calib_yaml import read_calib_yaml, write_calib_yaml
 from plvo.data.camera_model import CameraModel
 from plvo.data.folder import FolderDataset
@@ -98,22 +100,12 @@ def test_bad_folders_one_line(town, tmp_path):
         FolderDataset(root)
 
 
-def _distort(ideal: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """The image a lens with distortion D would have taken of the ideal pinhole image (same K)."""
-    h, w = ideal.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pts = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2)
-    undist = cv2.undistortPoints(pts, K, D, None, None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-6))
-    maps = undist.reshape(h, w, 2).astype(np.float32)
-    return cv2.remap(ideal, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR)
-
-
 def test_distorted_images_are_rectified(town, tmp_path):
     c = town.calib
     D = np.array([-0.30, 0.10, 0.0005, -0.0003, 0.0])
     root = _write_folder(tmp_path / "lens", town, scan_kind="bin")
     for i in range(N):
-        cv2.imwrite(str(root / "images" / f"frame_{i:04d}.png"), _distort(town[i].image, c.K, D))
+        cv2.imwrite(str(root / "images" / f"frame_{i:04d}.png"), distort_image(town[i].image, c.K, D))
     write_calib_yaml(root / "calib.yaml", CameraModel(c.width, c.height, c.K, D=D, P=c.K), c.T_cam_velo)
     cf = read_calib_yaml(root / "calib.yaml")
     assert cf.camera.distorted and cf.camera.needs_rectification

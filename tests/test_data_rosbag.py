@@ -5,9 +5,11 @@ run's trajectory; bad bags get one line naming the bag, topic or field.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from bag_writer import BASE_S, SCAN_LAG_S, BagSpec, write_bag
+from bag_writer import BASE_S, SCAN_LAG_S, BagSpec, distort_image, write_bag
 
 from plvo.config import SystemConfig, merge
 from plvo.data.calib_yaml import write_calib_yaml
@@ -192,3 +194,28 @@ def test_cli_bad_bag_exit_2(town, tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "choose one with --image-topic" in err[0] and str(bag) in err[0]
     assert not (tmp_path / "results").exists() and not (tmp_path / "recordings").exists()
+
+
+class _Distorted:
+    """The town frames as a lens with distortion D would have taken them (same K)."""
+
+    def __init__(self, dataset, D) -> None:
+        self.calib, self._ds, self._D = dataset.calib, dataset, D
+
+    def __len__(self) -> int:
+        return 3
+
+    def __getitem__(self, i):
+        f = self._ds[i]
+        return replace(f, image=distort_image(f.image, self.calib.K, self._D))
+
+
+def test_distorted_bag_is_rectified_with_camera_info(town, tmp_path):
+    D = (-0.28, 0.09, 0.0004, -0.0002, 0.0)
+    bag = RosbagDataset(write_bag(tmp_path / "lens", _Distorted(town, np.array(D)), BagSpec(ros=2, distortion=D)))
+    np.testing.assert_allclose(bag.calib.K, town.calib.K)  # CameraInfo's P: the rectified camera is K
+    inner = (slice(40, town.calib.height - 40), slice(120, town.calib.width - 120))
+    got, ideal = bag[1].image.astype(float), town[1].image.astype(float)
+    raw = _Distorted(town, np.array(D))[1].image.astype(float)
+    err, err_raw = np.abs(got - ideal)[inner].mean(), np.abs(raw - ideal)[inner].mean()
+    assert err < 4.0 and err < 0.3 * err_raw, (err, err_raw)
