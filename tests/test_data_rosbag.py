@@ -225,3 +225,19 @@ def test_distorted_bag_is_rectified_with_camera_info(town, tmp_path):
     raw = _Distorted(town, np.array(D))[1].image.astype(float)
     err, err_raw = np.abs(got - ideal)[inner].mean(), np.abs(raw - ideal)[inner].mean()
     assert err < 4.0 and err < 0.3 * err_raw, (err, err_raw)
+
+
+@pytest.mark.slow
+def test_viz_runs_on_a_ros2_bag_folder(town, tmp_path, monkeypatch):
+    """`plvo-viz --root my_ros2_bag_folder` just works: a complete run, poses in TUM with the bag's stamps."""
+    from evo.tools import file_interface
+
+    from plvo_app.cli import main_viz
+
+    short = KittiOdometry(town_root(town), "00", frames=slice(0, 5))
+    bag = write_bag(tmp_path / "my_ros2_bag", short, BagSpec(ros=2, compressed=True))
+    monkeypatch.chdir(tmp_path)
+    assert main_viz(["--root", str(bag), "--no-serve", "--format", "tum", "--out", "res", "--rrd", "r.rrd"]) == 0
+    traj = file_interface.read_tum_trajectory_file(str(tmp_path / "res" / "poses.txt"))
+    np.testing.assert_allclose(traj.timestamps, BASE_S + short.times, atol=1e-6)
+    assert (tmp_path / "r.rrd").stat().st_size > 0
