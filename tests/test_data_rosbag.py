@@ -241,3 +241,19 @@ def test_viz_runs_on_a_ros2_bag_folder(town, tmp_path, monkeypatch):
     traj = file_interface.read_tum_trajectory_file(str(tmp_path / "res" / "poses.txt"))
     np.testing.assert_allclose(traj.timestamps, BASE_S + short.times, atol=1e-6)
     assert (tmp_path / "r.rrd").stat().st_size > 0
+
+
+def test_eval_run_takes_a_bag_as_root(town, tmp_path):
+    import argparse
+
+    from plvo_app import eval_run
+
+    short = KittiOdometry(town_root(town), "00", frames=slice(0, 3))
+    bag = write_bag(tmp_path / "drive.bag", short, BagSpec(ros=1, extra_image_topic="/camera2/image_raw"))
+    p = argparse.ArgumentParser()
+    eval_run.add_run_arguments(p)
+    args = p.parse_args(["--root", str(bag), "--image-topic", "/camera2/image_raw", "--beams", "32"])
+    (source,) = eval_run.gather_sources(args)
+    assert source.name == "drive" and source.image_topic == "/camera2/image_raw" and source.beams == 32
+    ds = source.open()  # what an eval worker does, with the topic and beams carried in the task spec
+    assert len(ds) == 3 and len(ds[0].scan) == pytest.approx(len(short[0].scan) / 2, rel=0.05)

@@ -119,6 +119,7 @@ class RosbagDataset:
                                                      "--image-topic")
         self.cloud_topic, _ = _choose(self.path, conns, opts.cloud_topic, (CLOUD_TYPE,), "point cloud",
                                       "--cloud-topic")
+        self._info_topics = sorted({c.topic for c in conns if c.msgtype == INFO_TYPE})
         images, scans, first = self._index(reader, _camera_info(conns, self.image_topic))
         self._pair(images, scans, opts.max_pair_dt)
         selected = select_frames(frames, len(self._pairs), f"bag {self.path} ({len(self._pairs)} paired frames)")
@@ -200,8 +201,10 @@ class RosbagDataset:
 
     def _bag_calibration(self, first: dict):
         if self._info is None:
+            others = ", ".join(self._info_topics)
+            which = f"none of the CameraInfo topics ({others}) is beside it" if others else "no CameraInfo topic"
             raise CalibrationError(f"{self.path}: no calibration: no CameraInfo topic for {self.image_topic} "
-                                   "in the bag; give a calibration YAML with --calib")
+                                   f"({which}); give a calibration YAML with --calib")
         camera = camera_model(self._info, f"{self.path} CameraInfo")
         cam_frame = self._info.header.frame_id or first["image"].header.frame_id
         lidar_frame = first["cloud"].header.frame_id
