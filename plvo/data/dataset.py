@@ -1,4 +1,5 @@
-"""The dataset protocol every sequence source follows (KITTI odometry, KITTI raw, synthetic town).
+"""The dataset protocol every sequence source follows (KITTI odometry, KITTI raw, synthetic town, ROS bags, plain
+folders), and the options a bag or folder needs (SourceOptions).
 
 A dataset is a selected range of frames of one sequence. Positions `0..len-1` index that range; each Frame
 carries the dataset's own frame number in `Frame.index`. Images and scans are read lazily by `__getitem__`.
