@@ -88,6 +88,12 @@ class DepthConfig:
     line_min_coverage: float = 0.3  # inliers must span this fraction of the segment
     line_max_reproj_px: float = 2.0  # fitted line's RMS reprojection residual against the segment
     min_ray_line_sin: float = 0.05  # end rays closer to parallel with the 3D line give no endpoints
+    # sparser lidars (plvo.depth.density): patches scaled by the scan's ring spacing over the HDL-64E's in KITTI's
+    # camera when it is at least adapt_min_ratio times larger (16 beams: about 4x, 32: 2x; 64: unchanged)
+    adapt_to_ring_spacing: bool = True
+    reference_ring_spacing_px: float = 5.0
+    adapt_min_ratio: float = 1.5
+    adapt_max_ratio: float = 5.0
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,9 @@ class Frame:
 
     image: (H,W) uint8 grayscale. scan: (N,4) float32 x,y,z,reflectance in the lidar frame.
     gt_T_world_cam: (4,4) ground-truth pose of the camera in the world (cam0 of frame 0), or None.
+    color: (H,W,3) uint8 RGB of the same (rectified) image when the source is a colour camera, else None; only
+    viewers use it, the pipeline works on `image`. scan_time: (N,) float64 seconds of each return relative to the
+    scan's stamp when the source records it (ROS PointCloud2 `t`/`time` fields), else None.
     """
 
     index: int
@@ -60,6 +63,8 @@ class Frame:
     scan: np.ndarray
     calib: Calibration
     gt_T_world_cam: np.ndarray | None = None
+    color: np.ndarray | None = None
+    scan_time: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

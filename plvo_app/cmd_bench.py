@@ -35,6 +35,7 @@ from plvo.config import config_to_dict, config_to_toml, load_config
 from plvo.errors import DatasetError
 from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
 from plvo.recording import RunInfo
+from plvo_app.source_args import add_source_arguments, source_options
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(recording on), reporting per 100-frame window frames a second, memory, recording size and pose "
                    "error, and per run the loops, corrections and losses (plvo.eval.soak); e.g. --synth DIR --seq 40 "
                    "of `plvo synth --out DIR --seq 40 --frames 4541 --seed 7 --speed 11 --loop --stops`")
+    add_source_arguments(p)
 
 
 def _open(args: argparse.Namespace):
@@ -73,6 +75,7 @@ def _open(args: argparse.Namespace):
     from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
 
     frames = parse_frames(args.frames) if args.frames else None
+    source = dict(camera=args.camera, options=source_options(args))
     if args.synth is not None:
         if not (args.synth / "sequences").is_dir():
             raise DatasetError(f"--synth {args.synth}: no sequences/ folder (write one with `plvo synth --out DIR`)")
@@ -80,9 +83,9 @@ def _open(args: argparse.Namespace):
         return open_dataset(args.synth, seq, frames), args.synth
     if args.root is not None or os.environ.get(ROOT_ENV):
         root = args.root or Path(os.environ[ROOT_ENV])
-        return open_dataset(root, args.seq or "04", frames), root
+        return open_dataset(root, args.seq or "04", frames, **source), root
     if (SHARED_KITTI / "sequences" / (args.seq or "04")).is_dir():
-        return open_dataset(SHARED_KITTI, args.seq or "04", frames), SHARED_KITTI
+        return open_dataset(SHARED_KITTI, args.seq or "04", frames, **source), SHARED_KITTI
     from plvo.data.synth import DEFAULT_SEQUENCE, default_sequence_root
 
     log.info("no KITTI frames found: benchmarking the synthetic town (generated on first use)")

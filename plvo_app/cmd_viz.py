@@ -2,8 +2,9 @@
 
 With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
 $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
-results/<seq>_<time>/ with poses.txt (KITTI format, cam0, first frame at identity; written only when the run
-completed), config.toml (the resolved config) and timings.json.
+results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
+timestamps under --format tum; written only when the run completed), config.toml (the resolved config) and
+timings.json. --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
 Ctrl-C stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json likewise.
 """
 
@@ -24,13 +25,15 @@ from plvo.atomic import write_text_atomic
 from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
 from plvo.errors import DatasetError, RecordingError
 from plvo.recording import FanOut, RunInfo
+from plvo_app.source_args import add_source_arguments, source_options
 
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout); default $KITTI_ROOT, "
-                   "else the embedded synthetic town")
+    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout), a ROS bag (.bag, ROS 2 "
+                   "folder, .mcap) or a plain images/ + scans/ folder; default $KITTI_ROOT, else the embedded "
+                   "synthetic town")
     p.add_argument("--seq", default=None, help="odometry sequence (04) or raw drive (2011_09_26_drive_0009); "
                    "default 00 with a root")
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
@@ -41,6 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
     p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
     p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
+                   help="poses.txt format: kitti (12 numbers a line) or tum (time tx ty tz qx qy qz qw, the data's "
+                        "timestamps); default kitti")
+    add_source_arguments(p)
 
 
 def git_revision() -> str:
@@ -79,7 +86,7 @@ def _open(args: argparse.Namespace):
     if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
         root, seq = _synthetic_town()
         return open_dataset(root, seq, frames), f"town{seq}"
-    dataset = open_dataset(args.root, args.seq or "00", frames)
+    dataset = open_dataset(args.root, args.seq or "00", frames, camera=args.camera, options=source_options(args))
     return dataset, dataset.sequence
 
 
@@ -137,7 +144,8 @@ def _outputs(args: argparse.Namespace, sequence: str) -> Outputs:
     return Outputs(rrd.stem if args.rrd else run, rrd, out)
 
 
-def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float, dataset) -> None:
+def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float, dataset,
+                   fmt: str = "kitti") -> None:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.toml")
     timings = {"status": status, "frames_done": system.frames_done, "frames_total": len(dataset),
@@ -145,8 +153,8 @@ def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float
                "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
     write_text_atomic(out / "timings.json", json.dumps(timings, indent=1) + "\n")
     if status == "complete":
-        from plvo.data.trajectory import write_kitti_poses
-        write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
+        from plvo.data.trajectory import write_poses
+        write_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices), dataset.times, fmt)
 
 
 def _run_frames(system, dataset) -> None:
@@ -204,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
         fps = system.frames_done / max(time.perf_counter() - t0, 1e-9)
         recorders[0].set_status(status, system.frames_done)
         system.close()
-        _write_results(outs.out, system, cfg, status, fps, dataset)
+        _write_results(outs.out, system, cfg, status, fps, dataset, args.format)
     print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
     if status != "complete":
         if viewer is not None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+from dataclasses import replace
 import logging
 import os
 import sys
@@ -26,6 +27,7 @@ from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions
 from plvo.eval.report import build_report, report_markdown, write_report
 from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
+from plvo_app.source_args import add_source_arguments
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +44,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         help="synthetic town output: a root holding sequences/* (all are run) or one sequences/NAME folder",
     )
     src.add_argument("--frames", metavar="A:B", help="run frames A..B-1 of every sequence (default: all)")
+    add_source_arguments(p)
     p.add_argument(
         "--ablations", default="full", metavar="A,B,...",
         help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full)",
@@ -103,7 +106,7 @@ def _label(sources: list[SequenceSource]) -> list[SequenceSource]:
     out = []
     for s in sources:
         label = s.sequence if names.count(s.sequence) == 1 else f"{Path(s.root or '').name}/{s.sequence}"
-        out.append(SequenceSource(s.root, s.sequence, s.frames, label.replace("/", "_")))
+        out.append(replace(s, label=label.replace("/", "_")))
     return out
 
 
@@ -111,14 +114,23 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
     if args.frames:
         parse_frames(args.frames)  # fail early on a bad range
     sources = []
-    if args.seq:
+    from plvo.data.folder import is_folder
+    from plvo.data.rosbag import is_bag
+
+    extra = dict(camera=args.camera, image_topic=args.image_topic, cloud_topic=args.cloud_topic,
+                 calib=None if args.calib is None else str(Path(args.calib).resolve()), max_pair_dt=args.max_pair_dt,
+                 lidar_elevation_offset_deg=args.lidar_elevation_offset, beams=args.beams)
+    if args.root is not None and (is_bag(args.root) or is_folder(args.root)):  # a recording: one sequence
+        name = args.root.stem if args.root.is_file() else args.root.resolve().name
+        sources.append(SequenceSource(str(args.root.resolve()), name, args.frames, **extra))
+    elif args.seq:
         root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
         if not root:
             raise PlvoError(f"--seq {' '.join(args.seq)}: give --root or set ${ROOT_ENV}")
-        sources += [SequenceSource(str(Path(root).resolve()), s, args.frames) for s in args.seq]
+        sources += [SequenceSource(str(Path(root).resolve()), s, args.frames, **extra) for s in args.seq]
     elif args.root is not None:
         raise PlvoError("--root given without --seq: name the sequences to run, e.g. --seq 00 04")
-    sources += synth_sources(args.synth, args.frames)
+    sources += [replace(s, **extra) for s in synth_sources(args.synth, args.frames)]
     if not sources:
         raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., or --synth DIR")
     return _label(sources)

@@ -193,7 +193,8 @@ class RerunRecorder:
         self._at = int(frame.index)
         self._times[self._at] = float(frame.time)
         self._set_time(self._at)
-        ok, buf = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, self.opt.jpeg_quality])
+        shown = frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)  # colour source
+        ok, buf = cv2.imencode(".jpg", shown, [cv2.IMWRITE_JPEG_QUALITY, self.opt.jpeg_quality])
         if ok:
             rec.log(E["image"], rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
 

@@ -298,7 +298,8 @@ class ViserRecorder:
 
     def on_frame(self, frame: Frame) -> None:
         self._frame = frame
-        self.store.put("image", frame.index, _jpeg_small(frame.image, 2 * self.viewer.limits.image_width))
+        shown = frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)  # colour source
+        self.store.put("image", frame.index, _jpeg_small(shown, 2 * self.viewer.limits.image_width))
 
     def on_stage(self, frame_index: int, result: Any) -> None:
         known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult", "TimingResult")

@@ -32,8 +32,9 @@ fi
 extras="compare"
 [ $want_test = 1 ] && extras="test,compare"
 stamp=".venv/.plvo-installed-$extras"
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
   echo "setup: installing plvo[$extras] into .venv"
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[$extras]"
+  # constraints.txt: the exact versions the suite passes with; pyproject.toml only states ranges
+  .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[$extras]"
   touch "$stamp"
 fi

@@ -1,4 +1,5 @@
-"""The dataset protocol every sequence source follows (KITTI odometry, KITTI raw, synthetic town).
+"""The dataset protocol every sequence source follows (KITTI odometry, KITTI raw, synthetic town, ROS bags, plain
+folders), and the options a bag or folder needs (SourceOptions).
 
 A dataset is a selected range of frames of one sequence. Positions `0..len-1` index that range; each Frame
 carries the dataset's own frame number in `Frame.index`. Images and scans are read lazily by `__getitem__`.
@@ -7,6 +8,7 @@ carries the dataset's own frame number in `Frame.index`. Images and scans are re
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -92,3 +94,24 @@ def select_frames(frames: FrameSelection, n: int, where: str) -> tuple[int, ...]
     if len(selected) == 0:
         raise DatasetError(f"frames {label}: no frame selected, {where} has frames 0..{n - 1}")
     return tuple(int(i) for i in selected)
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """What a bag or a plain folder cannot tell by itself (all optional; the CLIs' --image-topic, --cloud-topic,
+    --calib, --max-pair-dt).
+
+    image_topic, cloud_topic: topics to read (None: the only one of its kind). calib: calibration YAML
+    (plvo.data.calib_yaml; None: the bag's CameraInfo and /tf_static, or the folder's calib.yaml). max_pair_dt:
+    seconds an image and its scan may be apart. lidar_elevation_offset_deg: the lidar's vertical-angle error
+    (Calibration.lidar_elevation_offset_deg; KITTI's HDL-64E: 0.205), overriding the calibration YAML's (None: the
+    YAML's, or 0 for CameraInfo + TF, which cannot carry it). beams: resample the (HDL-64E) scans to 16 or 32
+    beams by ring, of any source (None: as recorded).
+    """
+
+    image_topic: str | None = None
+    cloud_topic: str | None = None
+    calib: str | None = None
+    max_pair_dt: float = 0.05
+    lidar_elevation_offset_deg: float | None = None
+    beams: int | None = None  # resample 64-beam scans to this many beams (plvo.lidar.beams); None: as recorded

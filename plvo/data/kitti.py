@@ -22,6 +22,7 @@ import pykitti.utils as kitti_utils
 from PIL import Image, UnidentifiedImageError
 
 from plvo.data.dataset import FrameSelection, select_frames
+from plvo.data.images import split_gray_color
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import CalibrationError, DatasetError, TrajectoryError
 from plvo.geometry import se3
@@ -29,7 +30,8 @@ from plvo.types import Calibration, Frame
 
 log = logging.getLogger(__name__)
 
-CAMERAS = (0, 1, 2, 3)  # 0/1 gray left/right, 2/3 colour left/right (converted to gray)
+CAMERAS = (0, 1, 2, 3)  # 0/1 gray left/right, 2/3 colour left/right (converted to gray, colour kept for viewers)
+COLOUR_CAMERAS = (2, 3)
 RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})(?:_sync)?$")
 _OXTS_FIELDS = 30
 # KITTI's HDL-64E returns sit this far too low in elevation (see plvo.lidar.registration); the synthetic town's
@@ -54,6 +56,16 @@ def _numbered_files(directory: Path, suffix: str) -> dict[int, Path]:
 def _name_of(files: dict[int, Path], directory: Path, frame: int, suffix: str) -> Path:
     width = len(next(iter(files.values())).stem) if files else 6
     return directory / f"{frame:0{width}d}{suffix}"
+
+
+def _hint_other_cameras(images: dict[int, Path], image_dir: Path, camera_dirs: list[Path]) -> None:
+    """No images for the chosen camera: say which cameras the sequence does have (colour-only downloads)."""
+    if images:
+        return
+    others = [c for c, d in zip(CAMERAS, camera_dirs) if d != image_dir and _numbered_files(d, ".png")]
+    if others:
+        raise DatasetError(f"{image_dir}: no images (*.png); this sequence has camera "
+                           f"{' and '.join(map(str, others))}: give --camera {others[0]}")
 
 
 def _check_listing(images: dict[int, Path], image_dir: Path, scans: dict[int, Path], scan_dir: Path) -> int:
@@ -141,8 +153,10 @@ class _KittiSequence:
         scans: dict[int, Path],
         times: np.ndarray,
         gt: np.ndarray | None,
+        camera: int = 0,
     ) -> None:
         self.sequence = sequence
+        self.camera = camera
         self.calib = calib
         self._frames = frames
         self._images = [images[k] for k in frames]
@@ -164,13 +178,15 @@ class _KittiSequence:
             raise IndexError(f"position {i} out of range for {n} frames")
         i %= n
         gt = None if self._gt is None else self._gt[i].copy()
+        gray, color = self._load_image(i)
         return Frame(
             index=self._frames[i],
             time=float(self._times[i]),
-            image=self._load_image(i),
+            image=gray,
             scan=self._load_scan(i),
             calib=self.calib,
             gt_T_world_cam=gt,
+            color=color,
         )
 
     @property
@@ -185,20 +201,22 @@ class _KittiSequence:
     def times(self) -> np.ndarray:
         return self._times.copy()
 
-    def _load_image(self, i: int) -> np.ndarray:
+    def _load_image(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(grey (H,W), RGB (H,W,3) for the colour cameras 2 and 3 else None)."""
         path, frame = self._images[i], self._frames[i]
+        colour = self.camera in COLOUR_CAMERAS
         try:
-            image = np.asarray(kitti_utils.load_image(str(path), mode="L"), dtype=np.uint8)
+            image = np.asarray(kitti_utils.load_image(str(path), mode="RGB" if colour else "L"), dtype=np.uint8)
         except FileNotFoundError:
             raise DatasetError(f"{path}: missing image (frame {frame})") from None
         except (OSError, UnidentifiedImageError) as exc:
             raise DatasetError(f"{path}: unreadable image (frame {frame}): {exc}") from None
-        if image.shape != (self.calib.height, self.calib.width):
+        if image.shape[:2] != (self.calib.height, self.calib.width):
             raise DatasetError(
                 f"{path}: image is {image.shape[1]}x{image.shape[0]}, but the first frame's is "
                 f"{self.calib.width}x{self.calib.height} (frame {frame})"
             )
-        return image
+        return split_gray_color(image)
 
     def _load_scan(self, i: int) -> np.ndarray:
         path, frame = self._scans[i], self._frames[i]
@@ -231,6 +249,7 @@ class KittiOdometry(_KittiSequence):
             raise DatasetError(f"{seq_dir}: no such odometry sequence directory")
         image_dir, scan_dir = seq_dir / f"image_{camera}", seq_dir / "velodyne"
         images, scans = _numbered_files(image_dir, ".png"), _numbered_files(scan_dir, ".bin")
+        _hint_other_cameras(images, image_dir, [seq_dir / f"image_{c}" for c in CAMERAS])
         n = _check_listing(images, image_dir, scans, scan_dir)
         selected = select_frames(frames, n, f"sequence {sequence} ({n} frames in {image_dir})")
         _read_calib(seq_dir / "calib.txt", {"P0": 12, "P1": 12, "P2": 12, "P3": 12, "Tr": 12})
@@ -244,8 +263,11 @@ class KittiOdometry(_KittiSequence):
         synthetic = (seq_dir / SYNTH_MARKER).is_file()
         offset = 0.0 if synthetic else KITTI_LIDAR_ELEVATION_OFFSET_DEG
         calib = _calibration(data.calib, camera, width, height, offset)
-        gt = _odometry_gt(root / "poses" / f"{sequence}.txt", selected, calib.T_cam0_cam)
-        self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt)
+        pose_file = root / "poses" / f"{sequence}.txt"
+        if not pose_file.is_file() and (seq_dir / "poses.txt").is_file():  # SemanticKITTI keeps it in the sequence
+            pose_file = seq_dir / "poses.txt"
+        gt = _odometry_gt(pose_file, selected, calib.T_cam0_cam)
+        self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt, camera)
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:
@@ -295,6 +317,7 @@ class KittiRaw(_KittiSequence):
         image_dir = drive_dir / f"image_0{camera}" / "data"
         scan_dir, oxts_dir = drive_dir / "velodyne_points" / "data", drive_dir / "oxts" / "data"
         images, scans = _numbered_files(image_dir, ".png"), _numbered_files(scan_dir, ".bin")
+        _hint_other_cameras(images, image_dir, [drive_dir / f"image_0{c}" / "data" for c in CAMERAS])
         n = _check_listing(images, image_dir, scans, scan_dir)
         _check_oxts_listing(oxts_dir, n)
         selected = select_frames(frames, n, f"drive {date}_drive_{number} ({n} frames in {image_dir})")
@@ -309,7 +332,7 @@ class KittiRaw(_KittiSequence):
         calib = _calibration(data.calib, camera, width, height, KITTI_LIDAR_ELEVATION_OFFSET_DEG)
         times = np.array([(t - data.timestamps[0]).total_seconds() for t in data.timestamps[1:]])
         gt = _raw_gt(data, calib.T_cam0_cam)
-        self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt)
+        self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt, camera)
 
 
 def _check_oxts_listing(oxts_dir: Path, n: int) -> None:

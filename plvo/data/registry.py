@@ -4,6 +4,9 @@
 drive under `root/2011_09_26/2011_09_26_drive_0009_sync`. Other sources (the synthetic town) plug in with
 `register_layout` without touching this module. A sequence directory that exists under the root decides the
 layout whatever the name (`root/sequences/town` is KITTI odometry).
+
+A root that is itself a recording opens as one whatever the sequence name: a ROS 1 `.bag`, a ROS 2 bag folder
+(metadata.yaml) or `.mcap` (plvo.data.rosbag), or a plain folder with images/ and scans/ (plvo.data.folder).
 """
 
 from __future__ import annotations
@@ -14,11 +17,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from plvo.data.dataset import Dataset, FrameSelection
+from plvo.data.dataset import Dataset, FrameSelection, SourceOptions
+from plvo.data.folder import FolderDataset, is_folder
 from plvo.data.kitti import RAW_DRIVE, KittiOdometry, KittiRaw
+from plvo.data.rosbag import RosbagDataset, is_bag
 from plvo.errors import DatasetError
 
 ROOT_ENV = "KITTI_ROOT"
+KITTI_DOWNLOAD = "https://www.cvlibs.net/datasets/kitti/eval_odometry.php"
 
 
 @dataclass(frozen=True)
@@ -91,7 +97,7 @@ def _resolve_root(root: Path | str | None, sequence: str, layout: Layout | None)
     if root is None:
         env = os.environ.get(ROOT_ENV)
         if not env:
-            raise DatasetError(f"{what}: no dataset root given and ${ROOT_ENV} is not set")
+            raise DatasetError(no_root_message(what))
         root = env
     root = Path(root).expanduser()
     if not root.is_dir():
@@ -99,15 +105,46 @@ def _resolve_root(root: Path | str | None, sequence: str, layout: Layout | None)
     return root
 
 
+def no_root_message(what: str) -> str:
+    """The one line for a KITTI sequence asked for without a dataset: what to download, what to set, what runs
+    without it."""
+    return (f"{what}: no dataset root given and ${ROOT_ENV} is not set: download the KITTI odometry 'grayscale' "
+            f"(or 'color') images, 'velodyne laser data', 'calibration files' and 'ground truth poses' from "
+            f"{KITTI_DOWNLOAD}, unpack them into one folder (sequences/NN/, poses/) and give it as --root DIR or set "
+            f"${ROOT_ENV}; without KITTI, `plvo-viz` with no --seq runs the synthetic town, `plvo synth --out DIR "
+            f"--follow POSES.txt` writes a twin of a KITTI sequence for --root DIR, and --root also takes a ROS bag "
+            f"or a plain folder (README: Your own data)")
+
+
 def open_dataset(
-    root: Path | str | None, sequence: str, frames: FrameSelection = None, camera: int = 0
+    root: Path | str | None, sequence: str | None, frames: FrameSelection = None, camera: int = 0,
+    options: SourceOptions | None = None,
 ) -> Dataset:
     """Open `sequence` under `root` (or $KITTI_ROOT when root is None), the layout told from the name and root.
 
-    A layout whose directory for the sequence exists under the root wins (so `root/sequences/town` opens as
-    KITTI odometry although `town` is not two digits); otherwise the name's form decides what was looked for.
+    A root that is a bag or a plain folder opens as such (sequence ignored; `options` names topics and
+    calibration). Otherwise a layout whose directory for the sequence exists under the root wins (so
+    `root/sequences/town` opens as KITTI odometry although `town` is not two digits); else the name's form decides
+    what was looked for.
     """
-    sequence = str(sequence).strip()
+    dataset = _open(root, sequence, frames, camera, options)
+    if options is not None and options.beams is not None:
+        from plvo.lidar.beams import BeamResampled
+
+        return BeamResampled(dataset, options.beams)
+    return dataset
+
+
+def _open(root: Path | str | None, sequence: str | None, frames: FrameSelection, camera: int,
+          options: SourceOptions | None) -> Dataset:
+    if root is not None and is_bag(root):
+        return RosbagDataset(root, frames=frames, options=options)
+    if root is not None and is_folder(root):
+        return FolderDataset(root, frames=frames, options=options)
+    if root is not None and Path(root).is_file():
+        raise DatasetError(f"dataset root {root}: a file but not a ROS bag (.bag, .mcap); a dataset root is a "
+                           "folder (KITTI, a ROS 2 bag, images/ + scans/)")
+    sequence = str(sequence if sequence is not None else "00").strip()
     by_name = [lay for lay in _LAYOUTS if lay.matches(sequence)]
     for layout in by_name:
         if not layout.needs_root:

@@ -111,3 +111,16 @@ def write_tum(path: PathLike, times: np.ndarray, poses: np.ndarray) -> None:
         for t, T, q in zip(times, poses, quats)
     ]
     write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+POSE_FORMATS = ("kitti", "tum")
+
+
+def write_poses(path: PathLike, poses: np.ndarray, times: np.ndarray, fmt: str = "kitti") -> None:
+    """(N,4,4) T_world_cam -> pose file in `fmt` (kitti, or tum with the (N,) times in seconds), atomically."""
+    if fmt == "kitti":
+        write_kitti_poses(path, poses)
+    elif fmt == "tum":
+        write_tum(path, times, poses)
+    else:
+        raise TrajectoryError(f"{path}: pose format {fmt!r} unknown (one of {', '.join(POSE_FORMATS)})")

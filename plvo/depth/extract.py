@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.config import DepthConfig
+from plvo.depth.density import adapt_patches
 from plvo.depth.lines import LineDepthResult, line_depths
 from plvo.depth.points import PointDepthResult, point_depths
 from plvo.depth.projection import ProjectedScan, project_scan
@@ -70,6 +71,10 @@ def extract_depth_arrays(
     seg = _as_array(segments, 4, "segments")
     t0 = time.perf_counter()
     proj = project_scan(scan, calib, cfg.min_depth_m, cfg.max_depth_m, cfg.grid_cell_px, cfg.zbuffer_px)
+    cfg, scale = adapt_patches(cfg, proj)
+    if scale != 1.0:
+        log.debug("sparse scan: depth patches scaled %.2fx (point %d px, line %d px)", scale, cfg.point_patch_px,
+                  cfg.line_patch_px)
     t1 = time.perf_counter()
     pr = point_depths(proj, kp, calib.K, cfg)
     t2 = time.perf_counter()

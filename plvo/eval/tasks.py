@@ -27,7 +27,7 @@ import numpy as np
 
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_toml, load_config, merge, with_ablation
-from plvo.data.dataset import Dataset
+from plvo.data.dataset import Dataset, SourceOptions
 from plvo.data.registry import open_dataset, parse_frames
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
 from plvo.errors import PlvoError
@@ -42,12 +42,20 @@ KISS_SETTING = "kiss"
 
 @dataclass(frozen=True)
 class SequenceSource:
-    """A sequence to run: dataset root (None: $KITTI_ROOT), sequence name, frames 'A:B' (None: all), table label."""
+    """A sequence to run: dataset root (None: $KITTI_ROOT; or a bag / plain folder), sequence name, frames 'A:B'
+    (None: all), table label; the KITTI camera and, for bags and folders, SourceOptions' fields."""
 
     root: str | None
     sequence: str
     frames: str | None = None
     label: str = ""
+    camera: int = 0
+    image_topic: str | None = None
+    cloud_topic: str | None = None
+    calib: str | None = None
+    max_pair_dt: float = SourceOptions.max_pair_dt
+    lidar_elevation_offset_deg: float | None = None
+    beams: int | None = None
 
     @property
     def name(self) -> str:
@@ -55,7 +63,9 @@ class SequenceSource:
 
     def open(self) -> Dataset:
         frames = parse_frames(self.frames) if self.frames else None
-        return open_dataset(self.root, self.sequence, frames=frames)
+        options = SourceOptions(self.image_topic, self.cloud_topic, self.calib, self.max_pair_dt,
+                                self.lidar_elevation_offset_deg, self.beams)
+        return open_dataset(self.root, self.sequence, frames=frames, camera=self.camera, options=options)
 
 
 @dataclass(frozen=True)
