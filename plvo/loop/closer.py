@@ -29,7 +29,8 @@ from plvo.loop.vocabulary import Vocabulary, load_default
 
 log = logging.getLogger(__name__)
 
-SCAN_VOXEL_M = 0.2  # scans are kept thinned to this voxel size (registration works at 0.25-0.5 m)
+SCAN_VOXEL_M = 0.2  # thin_scan's default voxel
+SCAN_UNIT_M = 0.01  # stored scans: int16 centimetres (a 60 m crop fits; 6 bytes a point instead of 16)
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,35 @@ def thin_scan(scan: np.ndarray, voxel_m: float = SCAN_VOXEL_M) -> np.ndarray:
     flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
     _, first = np.unique(flat, return_index=True)
     return scan[np.sort(first)]
+
+
+def compact_scan(scan: np.ndarray, reg_cfg: RegistrationConfig | None) -> np.ndarray:
+    """(N,3|4) lidar points -> what the database keeps for a later verification: the returns registration uses
+    (within min_range_m..max_range_m), thinned to its fine voxel (voxel_m / 2), as (M,3) int16 centimetres."""
+    cfg = reg_cfg or RegistrationConfig()
+    pts = np.asarray(scan, dtype=np.float32)[:, :3]
+    r2 = np.einsum("ni,ni->n", pts, pts)
+    pts = pts[(r2 >= cfg.min_range_m ** 2) & (r2 <= min(cfg.max_range_m, 300.0) ** 2)]
+    pts = thin_scan(pts, cfg.voxel_m / 2 if cfg.voxel_m > 0 else SCAN_VOXEL_M)
+    return np.round(pts / SCAN_UNIT_M).astype(np.int16)
+
+
+def scan_points(scan: np.ndarray) -> np.ndarray:
+    """A scan as registration takes it: (M,3) float32 metres from compact_scan's int16, or unchanged."""
+    scan = np.asarray(scan)
+    return scan.astype(np.float32) * SCAN_UNIT_M if scan.dtype == np.int16 else scan
+
+
+def compact_keyframe(kf: LoopKeyframe) -> LoopKeyframe:
+    """What the database keeps of a keyframe once it was the query: as a candidate only its features with a
+    depth prior can match (verify keeps only those), in float32."""
+    p = np.flatnonzero(np.all(np.isfinite(kf.points_cam), axis=1))
+    ln = np.flatnonzero(np.all(np.isfinite(kf.lines_cam), axis=(1, 2)))
+    return dataclasses.replace(
+        kf, keypoints=np.asarray(kf.keypoints, np.float32)[p], descriptors=np.ascontiguousarray(kf.descriptors[p]),
+        points_cam=np.asarray(kf.points_cam, np.float32)[p], segments=np.asarray(kf.segments, np.float32)[ln],
+        line_descriptors=np.ascontiguousarray(kf.line_descriptors[ln]), lines_cam=np.asarray(kf.lines_cam,
+                                                                                              np.float32)[ln])
 
 
 def optimize_pose_graph(poses: np.ndarray, odometry: list[tuple[int, int, np.ndarray]],
@@ -135,15 +165,6 @@ class LoopCloser:
         loops = [(index[e.match_id], index[e.query_id], e.T_match_query) for e in self.edges]
         return odometry, loops
 
-    def point_depth(self, kf_id: int, features: np.ndarray) -> np.ndarray:
-        """(n,) feature indices of keyframe kf_id -> (n,) their depth-prior z in that camera, NaN where none."""
-        pts = self._kfs[kf_id].points_cam
-        f = np.asarray(features, np.int64)
-        ok = (f >= 0) & (f < len(pts))
-        out = np.full(len(f), np.nan)
-        out[ok] = pts[f[ok], 2]
-        return out
-
     def update_poses(self, ids: np.ndarray, poses: np.ndarray) -> None:
         """Tell the closer of refined T_world_cam (K,4,4) of keyframes ids (K,) (e.g. after bundle adjustment)."""
         for i, T in zip(np.asarray(ids).tolist(), np.asarray(poses)):
@@ -161,6 +182,7 @@ class LoopCloser:
         self._store(kf)
         self.detector.add(kf.kf_id, bp, bl)
         checks, accepted, rejections = self._verify(kf, det)
+        self._kfs[kf.kf_id] = compact_keyframe(self._kfs[kf.kf_id])
         t3 = time.perf_counter()
         ids = before = after = None
         if accepted is not None:
@@ -173,7 +195,7 @@ class LoopCloser:
         if self._ids:
             prev = self._ids[-1]
             self._odom[kf.kf_id] = se3.inv(self._poses[prev]) @ kf.T_world_cam
-        scan = None if kf.scan is None or not self.cfg.use_registration else thin_scan(kf.scan)
+        scan = None if kf.scan is None or not self.cfg.use_registration else compact_scan(kf.scan, self.reg_cfg)
         self._kfs[kf.kf_id] = LoopKeyframe(kf.kf_id, np.array(kf.T_world_cam, float), kf.keypoints,
                                            kf.descriptors, kf.points_cam, kf.segments, kf.line_descriptors,
                                            kf.lines_cam, scan, kf.frame_index)

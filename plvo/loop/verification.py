@@ -176,7 +176,9 @@ def _register(query: LoopKeyframe, cand: LoopKeyframe, T_cand_query: np.ndarray,
     T_cv = np.eye(4) if T_cam_velo is None else np.asarray(T_cam_velo, float)
     init = se3.inv(T_cv) @ T_cand_query @ T_cv
     try:
-        r = align(query.scan, cand.scan, init, reg_cfg, T_cv)
+        from plvo.loop.closer import scan_points
+
+        r = align(scan_points(query.scan), scan_points(cand.scan), init, reg_cfg, T_cv)
     except (PlvoError, RuntimeError) as exc:  # a scan too sparse to register is a rejection, not a crash
         return T_cand_query, 0.0, f"scan registration raised: {exc}"
     if not r.converged:
