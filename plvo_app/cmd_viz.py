@@ -221,8 +221,6 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as exc:
         status, exit_code = "interrupted", exit_status_of(exc)
         reason = "SIGTERM" if isinstance(exc, Terminated) else "Ctrl-C"
-        print(f"interrupted ({reason}) after {system.frames_done} of {len(dataset)} frames; keeping what was "
-              "recorded", file=sys.stderr)
     except PlvoError as exc:
         error, reason = exc, str(exc)
         runlog.traceback(f"frame {at[0]}: {exc}")
@@ -231,6 +229,9 @@ def run(args: argparse.Namespace) -> int:
         error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc} (see the log {runlog.path})")
         reason = str(error)
     with deferred_signals("writing the results"):
+        if status == "interrupted":
+            print(f"interrupted ({reason}) after {system.frames_done} of {len(dataset)} frames; keeping what was "
+                  "recorded", file=sys.stderr)
         status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog)
     print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
     if error is not None or status != "complete":
