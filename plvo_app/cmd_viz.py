@@ -140,15 +140,13 @@ def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict
             "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
 
 
-def _write_results(out: Path, system, status: str, reason: str, fps: float, dataset) -> None:
-    write_json(out / "timings.json", _timings(system, status, reason, fps, len(dataset)))
-    if status == "complete":
-        from plvo.data.trajectory import write_kitti_poses
+def _write_poses(out: Path, system, dataset) -> None:
+    from plvo.data.trajectory import write_kitti_poses
 
-        try:
-            write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
-        except OSError as exc:
-            raise RunFailed(f"{out / 'poses.txt'}: cannot write the results ({exc.strerror or exc})") from None
+    try:
+        write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
+    except OSError as exc:
+        raise RunFailed(f"{out / 'poses.txt'}: cannot write the results ({exc.strerror or exc})") from None
 
 
 def _run_frames(system, dataset, at: list[int]) -> float:
@@ -226,7 +224,9 @@ def run(args: argparse.Namespace) -> int:
         runlog.traceback(f"frame {at[0]}: {exc}")
     except Exception as exc:  # noqa: BLE001 - the last resort: one line, the traceback in the run log
         runlog.traceback(f"frame {at[0]}: unexpected error")
-        error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc} (see the log {runlog.path})")
+        cause = f": {type(exc.__cause__).__name__}: {exc.__cause__}" if exc.__cause__ is not None else ""
+        error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc}{cause} (see the log "
+                          f"{runlog.path})")
         reason = str(error)
     with deferred_signals("writing the results"):
         if status == "interrupted":
@@ -239,6 +239,8 @@ def run(args: argparse.Namespace) -> int:
             with deferred_signals("closing the viewer"):
                 viewer.close()
         if error is not None:
+            if error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
+                raise RunFailed(str(error)) from None
             raise error
         return exit_code
     tracked, share = tracked_summary(system.frames_done, system.n_lost)
@@ -251,13 +253,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog):
-    """Stamp and close the recording, write the results: (status, reason, error) as they end up."""
+    """Write the poses, stamp and close the recording, then write timings.json with the status as it ends up:
+    (status, reason, error). poses.txt comes first, so that neither the recording nor timings.json says
+    "complete" for a run whose poses could not be written."""
     if status == "complete":
         tracked, share = tracked_summary(system.frames_done, system.n_lost)
         if share < MIN_TRACKED_SHARE:
-            status, reason = "failed", (f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), "
-                                        f"below {MIN_TRACKED_SHARE:.0%}")
+            reason = f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), below {MIN_TRACKED_SHARE:.0%}"
             error = RunFailed(f"{reason}: results marked failed, no poses.txt")
+    if status == "complete" and error is None:
+        try:
+            _write_poses(outs.out, system, dataset)
+        except PlvoError as exc:
+            error, reason = exc, str(exc)
     if error is not None:
         status = "failed"
     try:
@@ -267,8 +275,9 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
     except PlvoError as exc:  # the recording's last write failed
         if error is None:
             status, reason, error = "failed", str(exc), exc
+            (outs.out / "poses.txt").unlink(missing_ok=True)
     try:
-        _write_results(outs.out, system, status, reason, fps, dataset)
+        write_json(outs.out / "timings.json", _timings(system, status, reason, fps, len(dataset)))
     except PlvoError as exc:
         error = error or exc
         log.error("%s", exc)

@@ -30,15 +30,22 @@ MESSAGE_HEADER = 16
 END = 0
 
 
-def messages(data: bytes) -> tuple[bytes, bytes]:
-    """(stream header, the complete messages before the end marker) of one encoded stream."""
-    pos, end = STREAM_HEADER, len(data)
+def message_spans(data: bytes) -> list[tuple[int, int]]:
+    """(start, stop) of each complete message of one encoded stream, up to its end marker."""
+    spans, pos, end = [], STREAM_HEADER, len(data)
     while pos + MESSAGE_HEADER <= end:
         kind, length = struct.unpack_from("<QQ", data, pos)
         if kind == END or pos + MESSAGE_HEADER + length > end:
             break
+        spans.append((pos, pos + MESSAGE_HEADER + length))
         pos += MESSAGE_HEADER + length
-    return data[:STREAM_HEADER], data[STREAM_HEADER:pos]
+    return spans
+
+
+def messages(data: bytes) -> tuple[bytes, bytes]:
+    """(stream header, the complete messages before the end marker) of one encoded stream."""
+    spans = message_spans(data)
+    return data[:STREAM_HEADER], data[STREAM_HEADER:spans[-1][1] if spans else STREAM_HEADER]
 
 
 def complete_prefix(path: str | Path) -> int:
@@ -75,10 +82,13 @@ class RrdFileSink:
         data = self._stream.read(flush=flush)
         if not data:
             return
-        header, body = messages(data)
-        self._write((header if self.written == 0 else b"") + body)
+        if self.written == 0:
+            self._write(data[:STREAM_HEADER])
+        view = memoryview(data)
+        for start, stop in message_spans(data):  # one by one: a full disk keeps every message that fitted
+            self._write(view[start:stop])
 
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes | memoryview) -> None:
         view = memoryview(data)
         try:
             while view:
