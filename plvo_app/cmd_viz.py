@@ -228,28 +228,29 @@ def run(args: argparse.Namespace) -> int:
         error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc}{cause} (see the log "
                           f"{runlog.path})")
         reason = str(error)
-    with deferred_signals("writing the results"):
+    # From here to the exit, Ctrl-C and SIGTERM are held: the clean-up is not cut short by a second Ctrl-C, and
+    # after a complete run a signal quits the viewer (exit 0, nothing said "interrupted").
+    with deferred_signals("writing the results") as held:
         if status == "interrupted":
-            print(f"interrupted ({reason}) after {system.frames_done} of {len(dataset)} frames; keeping what was "
+            print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({reason}); keeping what was "
                   "recorded", file=sys.stderr)
         status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog)
-    print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
-    if error is not None or status != "complete":
+        print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
+        if error is None and status == "complete":
+            tracked, share = tracked_summary(system.frames_done, system.n_lost)
+            print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%})", file=sys.stderr)
+            if viewer is not None and not held.seen:
+                held.what = None
+                print(f"serving the run: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+                while not held.seen:
+                    time.sleep(0.2)
         if viewer is not None:
-            with deferred_signals("closing the viewer"):
-                viewer.close()
-        if error is not None:
-            if error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
-                raise RunFailed(str(error)) from None
-            raise error
-        return exit_code
-    tracked, share = tracked_summary(system.frames_done, system.n_lost)
-    print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%})", file=sys.stderr)
-    if viewer is not None:
-        from plvo_app.viser_viewer import serve_until_interrupted
-
-        serve_until_interrupted(viewer, "serving the run")  # Ctrl-C / SIGTERM here ends a complete run: exit 0
-    return 0
+            viewer.close()
+    if error is not None:
+        if error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
+            raise RunFailed(str(error)) from None
+        raise error
+    return exit_code
 
 
 def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog):

@@ -45,22 +45,29 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+class Held:
+    """The signals `deferred_signals` held back (`seen`); `what` is said on the first one (None: say nothing)."""
+
+    def __init__(self, what: str | None):
+        self.what = what
+        self.seen: list[int] = []
+
+    def note(self, signum, frame) -> None:
+        if not self.seen and self.what:
+            print(f"{signal.Signals(signum).name}: finishing {self.what} first", file=sys.stderr)
+        self.seen.append(signum)
+
+
 @contextmanager
-def deferred_signals(what: str) -> Iterator[list[int]]:
-    """Within: Ctrl-C and SIGTERM are noted (once on stderr) but do not interrupt `what`; yields the signals seen."""
+def deferred_signals(what: str) -> Iterator[Held]:
+    """Within: Ctrl-C and SIGTERM are noted (once on stderr) but do not interrupt `what`."""
+    held = Held(what)
     if threading.current_thread() is not threading.main_thread():
-        yield []
+        yield held
         return
-    seen: list[int] = []
-
-    def note(signum, frame) -> None:
-        if not seen:
-            print(f"{signal.Signals(signum).name}: finishing {what} first", file=sys.stderr)
-        seen.append(signum)
-
-    previous = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: signal.signal(s, held.note) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield seen
+        yield held
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
