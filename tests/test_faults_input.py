@@ -190,3 +190,19 @@ def test_stale_synth_stage_removed_by_next_run(tmp_path):
     from plvo.data.synth.generate import remove_stale_stages
 
     assert remove_stale_stages(tmp_path, ".synth-00-") == stale and not stale[0].exists()
+
+
+def test_synth_sigterm_leaves_no_stage(tmp_path):
+    row = fault("synth-term")
+    env = dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    cmd = [sys.executable, "-c", "import sys; from plvo_app.cli import main; sys.exit(main())",
+           "synth", "--out", str(tmp_path), "--frames", "40", "--no-progress"]
+    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not list(tmp_path.glob(".synth-00-*/sequences/00/image_0/*.png")) and time.time() - t0 < 120:
+        time.sleep(0.2)
+    p.terminate()
+    err = p.stderr.read()
+    assert p.wait(timeout=60) == row.exit, err
+    assert err.strip().splitlines()[-1] == row.message and "Traceback" not in err
+    assert not list(tmp_path.glob(".synth-*")) and not (tmp_path / "sequences" / "00").exists()
