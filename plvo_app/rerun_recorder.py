@@ -417,7 +417,7 @@ class RerunRecorder:
         if self._frames_since_flush >= self.opt.scalar_flush_frames:
             self._flush_scalars()
         if self._sink is not None:
-            self._sink.pump()  # what the batcher encoded since the last step; raises on a failed write
+            self._sink.pump()  # raises the writer thread's first failed write, if any
 
     def metrics(self, m: MetricsResult) -> None:
         groups: dict[str, dict[str, float]] = defaultdict(dict)

@@ -119,11 +119,10 @@ def test_no_room_is_refused_before_the_run(town, tmp_path, capsys, monkeypatch, 
 # ---- failed writes during the run ----------------------------------------------------------------------------------
 
 def _fill(disk: Path) -> None:
-    with open(disk / "filler", "wb") as f:
+    with open(disk / "filler", "wb", buffering=0) as f:
         try:
             while True:
                 f.write(b"\0" * 65536)
-                f.flush()
         except OSError as exc:
             assert exc.errno == errno.ENOSPC
 
@@ -145,7 +144,7 @@ def test_disk_full_during_the_run(synth_seq, tmpfs, tmp_path):
     assert row.message in line and "No space left on device" in line and str(tmpfs / "run.rrd") in line
     timings = _timings(tmp_path / "out")
     assert timings["status"] == "failed" and "No space left" in timings["reason"]
-    assert timings["frames_done"] < 15 and not (tmp_path / "out" / "poses.txt").exists()
+    assert not (tmp_path / "out" / "poses.txt").exists()  # (the failure may come at a step or at the close)
     (tmpfs / "filler").unlink()
     data = read_rrd(tmpfs / "run.rrd")  # what was written stays readable
     assert data.properties["plvo:sequence"] == "00" and "/world" in data.static
@@ -159,11 +158,11 @@ def test_failed_recording_write_stops_the_run(town, tmp_path, capsys, monkeypatc
 
     kept, real = [], rrd_sink.RrdFileSink._write
 
-    def failing(self, data):
+    def failing(self, chunk, ends):
         if self.written > 200_000:
             kept.append(self.written)
             self._fail(OSError(errno.EIO, "Input/output error"))
-        real(self, data)
+        real(self, chunk, ends)
 
     monkeypatch.setattr(rrd_sink.RrdFileSink, "_write", failing)
     status, err = _viz([*town, "--frames", "0:20", "--rrd", "run.rrd", "--out", "out"], capsys)
