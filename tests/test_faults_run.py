@@ -97,6 +97,27 @@ def test_out_naming_a_file_is_one_line(town, tmp_path, capsys):
     assert not (tmp_path / "recordings").exists()
 
 
+def test_unwritable_output_is_refused_before_the_run(town, tmp_path, capsys):
+    """A read-only file system under --out (root ignores permission bits, so a read-only tmpfs where one can be
+    mounted; else a folder without write permission for an ordinary user)."""
+    row = fault("out-unwritable")
+    disk = tmp_path / "ro"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(disk)],
+                             capture_output=True).returncode == 0
+    if not mounted:
+        if os.geteuid() == 0:
+            pytest.skip("root without mount: no way to make a folder unwritable")
+        disk.chmod(0o500)
+    try:
+        status, err = _viz([*town, "--out", str(disk / "out")], capsys)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False) if mounted else disk.chmod(0o700)
+    line = one_error_line(err)
+    assert status == row.exit and row.message in line and str(disk / "out") in line
+    assert not (tmp_path / "recordings").exists() and not (tmp_path / "results").exists()
+
+
 def test_no_room_is_refused_before_the_run(town, tmp_path, capsys, monkeypatch, request):
     """20 frames need about 2.2 MB of recording and results: refused on a 2 MB tmpfs (or, where none can be
     mounted, a disk that reports 1 MB free), before anything is written; the folders made for it are removed."""
