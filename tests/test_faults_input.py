@@ -206,3 +206,16 @@ def test_synth_sigterm_leaves_no_stage(tmp_path):
     assert p.wait(timeout=60) == row.exit, err
     assert err.strip().splitlines()[-1] == row.message and "Traceback" not in err
     assert not list(tmp_path.glob(".synth-*")) and not (tmp_path / "sequences" / "00").exists()
+
+
+def test_eval_and_bench_out_of_the_wrong_kind(tmp_path, capsys):
+    from plvo_app.cli import main
+
+    eval_row, bench_row = fault("eval-out-file"), fault("bench-out-dir")
+    (tmp_path / "afile").write_text("mine\n")
+    status = main(["eval", "run", "--root", str(tmp_path), "--seq", "04", "--kiss", "--out", str(tmp_path / "afile")])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == eval_row.exit and eval_row.message in line and (tmp_path / "afile").read_text() == "mine\n"
+    status = main(["bench", "--root", str(tmp_path), "--seq", "04", "--out", str(tmp_path)])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == bench_row.exit and bench_row.message in line
