@@ -290,3 +290,29 @@ def test_unexpected_error_names_the_frame(town, tmp_path, capsys, monkeypatch):
     assert "Traceback" in log and "ValueError: injected tracker bug" in log
     timings = _timings(tmp_path / "out")
     assert timings["status"] == "failed" and "frame 2" in timings["reason"] and timings["frames_done"] == 2
+
+
+def test_recording_cut_mid_message_is_read(tmp_path, caplog):
+    """A .rrd cut mid-message (SIGKILL while writing): `plvo view` reads what is complete and says so."""
+    import rerun as rr
+
+    from plvo_app.cmd_view import view
+    from plvo_app.rrd_sink import RrdFileSink, complete_prefix
+
+    row = fault("rrd-cut")
+    rec = rr.RecordingStream("plvo")
+    sink = RrdFileSink(rec, tmp_path / "full.rrd")
+    for f in range(6):
+        rec.set_time("frame", sequence=f)
+        rec.log("world/camera/image", rr.Points2D(np.random.default_rng(f).random((50, 2))))
+        rec.flush()
+        sink._write_pending()  # one message batch per frame
+    sink.close()
+    raw = (tmp_path / "full.rrd").read_bytes()
+    cut = tmp_path / "cut.rrd"
+    cut.write_bytes(raw[:len(raw) - 40])
+    assert 0 < complete_prefix(cut) < cut.stat().st_size
+    data = read_rrd(cut)
+    assert data.frames("/world/camera/image") == [0, 1, 2, 3, 4]  # the last frame's message was cut
+    assert row.message in caplog.text
+    assert view(cut, serve=False) == row.exit
