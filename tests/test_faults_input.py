@@ -219,3 +219,28 @@ def test_eval_and_bench_out_of_the_wrong_kind(tmp_path, capsys):
     status = main(["bench", "--root", str(tmp_path), "--seq", "04", "--out", str(tmp_path)])
     line = one_error_line(capsys.readouterr().err)
     assert status == bench_row.exit and bench_row.message in line
+
+
+def test_unexpected_error_in_any_command_is_one_line(tmp_path, capsys, monkeypatch):
+    row = fault("unexpected-other")
+    from plvo_app import cmd_eval
+    from plvo_app.cli import main
+
+    def bug(*args, **kwargs):
+        raise ZeroDivisionError("injected eval bug")
+
+    monkeypatch.setattr(cmd_eval, "evaluate_sequence", bug)
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)  # re-read $TMPDIR
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    from plvo.data.trajectory import write_kitti_poses
+
+    write_kitti_poses(tmp_path / "p.txt", poses)
+    status = main(["eval", "metric", "--gt", str(tmp_path / "p.txt"), "--est", str(tmp_path / "p.txt")])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == row.exit and row.message in line
+    assert line.startswith("error: unexpected ZeroDivisionError: injected eval bug")
+    log = Path(line.rsplit("see the log ", 1)[1].rstrip(")"))
+    assert log.parent == tmp_path and "ZeroDivisionError: injected eval bug" in log.read_text()
