@@ -211,6 +211,8 @@ def run(args: argparse.Namespace) -> int:
 
             viewer = ViserViewer(SceneStore(), port=args.port, live=True)
             recorders.append(ViserRecorder(viewer))
+            if viewer.port != args.port:  # taken since check_port: viser moved on, and says nothing itself
+                print(f"port {args.port} was taken meanwhile; serving on {viewer.port}", file=sys.stderr)
             print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
         system.start(info)
         fps = _run_frames(system, dataset, at)
