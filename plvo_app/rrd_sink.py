@@ -5,7 +5,9 @@ goes on, and the next flush blocks for ever; the file it leaves ends mid-message
 whole. Here the stream's encoded bytes are taken from `RecordingStream.binary_stream()` and written by a Python
 thread: the first failed write is raised as a RecordingError by `RrdFileSink.pump` at the next step (or by close),
 and the file is cut back to its last complete message, which Rerun reads (as a file without a footer: "legacy",
-read by a whole-file scan).
+read by a whole-file scan). The files have no footer (chunk manifest) even when complete: still valid RRD, read by
+`plvo view`, the Rerun viewer and `rerun rrd print`; `rerun rrd verify` reports the missing footer and
+`rerun rrd optimize FILE.rrd > OUT.rrd` writes one (Rerun's own docs for `save(write_footer=False)`).
 
 RRD framing (re_log_encoding, RRF2): a 12-byte stream header ("RRF2", version, options), then messages of a
 16-byte header (kind u64, payload length u64, little-endian) and the payload; kind 0 ends a stream (its payload is
