@@ -1,6 +1,7 @@
 """Configuration: nested frozen dataclasses, one per subsystem, with the paper's parameters as defaults.
 
-Load with `load_config(path)` (TOML; unknown keys are rejected by their dotted name), save with `save_config`.
+Load with `load_config(path)` (TOML; unknown keys and values out of range (plvo/config_ranges.py) are rejected
+by their dotted name), save with `save_config`.
 Degrees appear only in fields whose name says so (`*_deg`).
 """
 
@@ -284,8 +285,13 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
 
 
 def config_from_dict(data: dict[str, Any]) -> SystemConfig:
-    """Build a config from nested dicts; unknown keys raise ConfigError naming the dotted key."""
-    return _from_dict(SystemConfig, data, "")
+    """Build a config from nested dicts; unknown keys, wrong types and values out of their range
+    (plvo.config_ranges) raise ConfigError naming the dotted key."""
+    from plvo.config_ranges import check_ranges
+
+    cfg = _from_dict(SystemConfig, data, "")
+    check_ranges(cfg)
+    return cfg
 
 
 def merge(base: SystemConfig, overrides: dict[str, Any]) -> SystemConfig:

@@ -12,6 +12,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from plvo.errors import PlvoError
 from plvo.types import Calibration, Frame
 
 log = logging.getLogger(__name__)
@@ -70,7 +71,8 @@ class NullRecorder:
 
 class FanOut:
     """Hands every call to each recorder in turn. A failing recorder is logged and dropped, never fatal
-    to the run: a viewer crash must not lose the trajectory."""
+    to the run: a viewer crash must not lose the trajectory. A PlvoError is the exception: a recorder that cannot
+    write the file the user asked for (a full disk) stops the run, which then says so on one line."""
 
     def __init__(self, recorders: list[Recorder]):
         self.recorders = list(recorders)
@@ -79,6 +81,8 @@ class FanOut:
         for rec in list(self.recorders):
             try:
                 getattr(rec, method)(*args)
+            except PlvoError:
+                raise
             except Exception:  # noqa: BLE001 - deliberately isolating recorder faults
                 log.exception("recorder %s failed in %s; dropping it", type(rec).__name__, method)
                 self.recorders.remove(rec)
@@ -93,8 +97,14 @@ class FanOut:
         self._each("on_stage", frame_index, result)
 
     def close(self) -> None:
+        """Close every recorder; the first PlvoError (a recording's last write failed) is raised after all."""
+        error: PlvoError | None = None
         for rec in self.recorders:
             try:
                 rec.close()
+            except PlvoError as exc:
+                error = error or exc
             except Exception:  # noqa: BLE001
                 log.exception("recorder %s failed to close", type(rec).__name__)
+        if error is not None:
+            raise error

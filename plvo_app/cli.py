@@ -1,7 +1,9 @@
 """Command-line entry points: `plvo-viz` and `plvo <subcommand>`.
 
 Each subcommand lives in its own module `plvo_app.cmd_<name>` exposing `add_arguments(parser)` and `run(args)`.
-A PlvoError is printed as one line and the process exits with status 2; Ctrl-C exits with 130.
+A PlvoError is printed as one line and the process exits with its status (2: refused before the run, 1: failed
+during it); Ctrl-C exits with 130, SIGTERM with 143; any other exception is one line naming a log with the traceback,
+exit 1 (docs/faults.md).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from plvo.errors import PlvoError
+from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt
 
 # One OpenBLAS thread unless the user chose otherwise: set here, before any subcommand imports numpy. OpenBLAS's
 # extra thread spins on 2 cores that the tracker, the line thread and the back end already share: on KITTI 04
@@ -39,14 +42,34 @@ def _setup_logging(verbose: bool) -> None:
 
 
 def _guarded(func, args) -> int:
+    """Run a subcommand: a PlvoError is one line and its exit status; Ctrl-C 130, SIGTERM 143; any other exception
+    (a bug) one line too, its traceback in a log file named on that line, exit 1."""
+    with sigterm_as_interrupt():
+        try:
+            return int(func(args) or 0)
+        except PlvoError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return exc.exit_status
+        except KeyboardInterrupt as exc:
+            print("terminated" if isinstance(exc, Terminated) else "interrupted", file=sys.stderr)
+            return exit_status_of(exc)
+        except Exception as exc:  # noqa: BLE001 - the last resort
+            where = _write_traceback()
+            print(f"error: unexpected {type(exc).__name__}: {exc} (see the log {where})", file=sys.stderr)
+            return 1
+
+
+def _write_traceback() -> str:
+    import tempfile
+    import traceback
+
     try:
-        return int(func(args) or 0)
-    except PlvoError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        fd, path = tempfile.mkstemp(prefix="plvo-traceback-", suffix=".log")
+        with os.fdopen(fd, "w") as f:
+            f.write(traceback.format_exc())
+        return path
+    except OSError:
+        return "(it could not be written)"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

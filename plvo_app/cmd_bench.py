@@ -32,7 +32,7 @@ from pathlib import Path
 
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_dict, config_to_toml, load_config
-from plvo.errors import DatasetError
+from plvo.errors import DatasetError, OutputError
 from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
 from plvo.recording import RunInfo
 from plvo_app.source_args import add_source_arguments, source_options
@@ -140,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
     from plvo_app.cmd_viz import git_revision, plvo_version
 
     stages = parse_stages(args.stages)  # bad arguments fail before any work
+    if args.out is not None and args.out.is_dir():
+        raise OutputError(f"--out {args.out}: is a folder; give the JSON file's name (e.g. {args.out / 'bench.json'})")
     cfg = load_config(args.config)
     dataset, root = _open(args)
     out = args.out or Path("results") / "bench" / f"{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from plvo.errors import RecordingError
+from plvo_app.guards import check_port
 from plvo_app.scene_common import wait_for_interrupt
 
 
@@ -50,5 +51,8 @@ def serve_rerun_web(path: Path, web_port: int) -> int:
 
 def run(args: argparse.Namespace) -> int:
     if args.rerun_web is not None:
+        check_port(args.rerun_web, "--rerun-web")
+        check_port(args.rerun_web + 1, "--rerun-web (its gRPC port, PORT+1)")
         return serve_rerun_web(args.file, args.rerun_web)
+    check_port(args.port)
     return view(args.file, port=args.port)

@@ -2,38 +2,37 @@
 
 With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
 $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
-results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
-timestamps under --format tum; written only when the run completed), config.toml (the resolved config) and
-timings.json. --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
-Ctrl-C stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json likewise.
+results/<seq>_<time>/ with poses.txt (KITTI format, cam0, first frame at identity; written only when the run
+completed), config.toml (the resolved config) and timings.json.
+Ctrl-C or SIGTERM stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json
+likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half its frames is marked
+"failed" with its reason and says so on one line. The faults and what each leaves: docs/faults.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import shlex
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
-from plvo.atomic import write_text_atomic
 from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
-from plvo.errors import DatasetError, RecordingError
+from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
-from plvo_app.source_args import add_source_arguments, source_options
+from plvo_app.guards import Terminated, check_port, deferred_signals, exit_status_of
+from plvo_app.run_outputs import (MIN_TRACKED_SHARE, Outputs, RunLog, check_outputs, remove_made, tracked_summary,
+                                  write_json)
 
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout), a ROS bag (.bag, ROS 2 "
-                   "folder, .mcap) or a plain images/ + scans/ folder; default $KITTI_ROOT, else the embedded "
-                   "synthetic town")
+    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout); default $KITTI_ROOT, "
+                   "else the embedded synthetic town")
     p.add_argument("--seq", default=None, help="odometry sequence (04) or raw drive (2011_09_26_drive_0009); "
                    "default 00 with a root")
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
@@ -44,10 +43,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
     p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
     p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
-    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
-                   help="poses.txt format: kitti (12 numbers a line) or tum (time tx ty tz qx qy qz qw, the data's "
-                        "timestamps); default kitti")
-    add_source_arguments(p)
 
 
 def git_revision() -> str:
@@ -86,7 +81,7 @@ def _open(args: argparse.Namespace):
     if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
         root, seq = _synthetic_town()
         return open_dataset(root, seq, frames), f"town{seq}"
-    dataset = open_dataset(args.root, args.seq or "00", frames, camera=args.camera, options=source_options(args))
+    dataset = open_dataset(args.root, args.seq or "00", frames)
     return dataset, dataset.sequence
 
 
@@ -126,98 +121,171 @@ def _unique(path: Path) -> Path:
     return candidate
 
 
-@dataclass(frozen=True)
-class Outputs:
-    run: str
-    rrd: Path
-    out: Path
-
-
 def _outputs(args: argparse.Namespace, sequence: str) -> Outputs:
     run = f"{sequence}_{time.strftime('%Y%m%d-%H%M%S')}"
     if args.rrd is not None and args.rrd.exists():
         raise RecordingError(f"{args.rrd}: already exists; plvo-viz never overwrites a recording")
-    if args.out is not None and args.out.exists() and any(args.out.iterdir()):
+    if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
         raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
     rrd = args.rrd or _unique(Path("recordings") / f"{run}.rrd")
     out = args.out or _unique(Path("results") / run)
     return Outputs(rrd.stem if args.rrd else run, rrd, out)
 
 
-def _write_results(out: Path, system, cfg: SystemConfig, status: str, fps: float, dataset,
-                   fmt: str = "kitti") -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out / "config.toml")
-    timings = {"status": status, "frames_done": system.frames_done, "frames_total": len(dataset),
-               "frames_per_second": fps, "stages": system.timing_summary(),
-               "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
-    write_text_atomic(out / "timings.json", json.dumps(timings, indent=1) + "\n")
-    if status == "complete":
-        from plvo.data.trajectory import write_poses
-        write_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices), dataset.times, fmt)
+def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict:
+    tracked, share = tracked_summary(system.frames_done, system.n_lost)
+    return {"status": status, "reason": reason, "frames_done": system.frames_done, "frames_total": n_total,
+            "frames_tracked": tracked, "tracked_share": round(share, 4), "frames_per_second": fps,
+            "stages": system.timing_summary(),
+            "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
 
 
-def _run_frames(system, dataset) -> None:
+def _write_poses(out: Path, system, dataset) -> None:
+    from plvo.data.trajectory import write_kitti_poses
+
+    try:
+        write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
+    except OSError as exc:
+        raise RunFailed(f"{out / 'poses.txt'}: cannot write the results ({exc.strerror or exc})") from None
+
+
+def _run_frames(system, dataset, at: list[int]) -> float:
     """Step through the dataset (each frame read while the previous one is tracked) with a progress bar, then let
-    the workers finish. Ctrl-C propagates."""
+    the workers finish; returns frames a second over all of it (what a user waits for). `at` holds the frame being
+    processed. Ctrl-C propagates."""
     from tqdm import tqdm
 
     from plvo.data.prefetch import prefetched
 
+    t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
         for frame in prefetched(dataset):
+            at[0] = frame.index
             system.step(frame)
             bar.update(1)
     system.finish()  # the back end and loop closer finish their keyframes; their results are recorded
+    return system.frames_done / max(time.perf_counter() - t0, 1e-9)
+
+
+def _start_outputs(outs: Outputs, cfg: SystemConfig, n_frames: int) -> RunLog:
+    """run.log, config.toml and timings.json marked "running": the first real writes, before the first frame."""
+    runlog = RunLog(outs.out / "run.log")
+    try:
+        save_config(cfg, outs.out / "config.toml")
+    except OSError as exc:
+        runlog.close()
+        raise OutputError(f"{outs.out / 'config.toml'}: cannot write ({exc.strerror or exc})") from None
+    write_json(outs.out / "timings.json", {"status": "running", "frames_total": n_frames})
+    return runlog
 
 
 def run(args: argparse.Namespace) -> int:
+    serve = not args.no_serve
+    if serve:
+        check_port(args.port)
     if args.replay is not None:
         from plvo_app.cmd_view import view
 
-        return view(args.replay, port=args.port, serve=not args.no_serve)
+        return view(args.replay, port=args.port, serve=serve)
     from plvo.system import System
     from plvo_app.rerun_recorder import RerunRecorder
 
     cfg = _resolve_config(args)
     dataset, label = _open(args)
     outs = _outputs(args, label)
+    made = check_outputs(outs, len(dataset), args.rrd is not None, args.out is not None)
+    try:
+        runlog = _start_outputs(outs, cfg, len(dataset))
+    except BaseException:
+        remove_made(made)
+        raise
     info = RunInfo(
         name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
         gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
         git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
         extra={"config_toml": config_to_toml(cfg)})
-    recorders, viewer = [RerunRecorder(outs.rrd)], None
-    if not args.no_serve:
-        from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer, serve_until_interrupted
-
-        viewer = ViserViewer(SceneStore(), port=args.port, live=True)
-        recorders.append(ViserRecorder(viewer))
-        print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
-    system = System(cfg, FanOut(recorders))
-    system.start(info)
-    status, fps = "interrupted", 0.0
-    t0 = time.perf_counter()
+    viewer = None
+    status, reason, error, exit_code, fps, at = "failed", "", None, 0, 0.0, [dataset.frame_indices[0]]
+    system = System(cfg, FanOut([]))
+    recorders = system.recorder.recorders  # filled below, inside the try: a failing recorder is a failed run
     try:
-        _run_frames(system, dataset)
+        recorders.append(RerunRecorder(outs.rrd))
+        if serve:
+            from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
+
+            viewer = ViserViewer(SceneStore(), port=args.port, live=True)
+            recorders.append(ViserRecorder(viewer))
+            if viewer.port != args.port:  # taken since check_port: viser moved on, and says nothing itself
+                print(f"port {args.port} was taken meanwhile; serving on {viewer.port}", file=sys.stderr)
+            print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
+        system.start(info)
+        fps = _run_frames(system, dataset, at)
         status = "complete"
-    except KeyboardInterrupt:
-        print(f"interrupted after {system.frames_done} of {len(dataset)} frames; keeping what was recorded",
-              file=sys.stderr)
-    except BaseException:
-        status = "failed"
-        raise
-    finally:
-        # What a user waits for: every frame read, tracked and recorded, and the workers' last results applied.
-        fps = system.frames_done / max(time.perf_counter() - t0, 1e-9)
-        recorders[0].set_status(status, system.frames_done)
-        system.close()
-        _write_results(outs.out, system, cfg, status, fps, dataset, args.format)
-    print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
-    if status != "complete":
+    except KeyboardInterrupt as exc:
+        status, exit_code = "interrupted", exit_status_of(exc)
+        reason = "SIGTERM" if isinstance(exc, Terminated) else "Ctrl-C"
+    except PlvoError as exc:
+        error, reason = exc, str(exc)
+        runlog.traceback(f"frame {at[0]}: {exc}")
+    except Exception as exc:  # noqa: BLE001 - the last resort: one line, the traceback in the run log
+        runlog.traceback(f"frame {at[0]}: unexpected error")
+        cause = f": {type(exc.__cause__).__name__}: {exc.__cause__}" if exc.__cause__ is not None else ""
+        error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc}{cause} (see the log "
+                          f"{runlog.path})")
+        reason = str(error)
+    # From here to the exit, Ctrl-C and SIGTERM are held: the clean-up is not cut short by a second Ctrl-C, and
+    # after a complete run a signal quits the viewer (exit 0, nothing said "interrupted").
+    with deferred_signals("writing the results") as held:
+        if status == "interrupted":
+            print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({reason}); keeping what was "
+                  "recorded", file=sys.stderr)
+        status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog)
+        print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
+        if error is None and status == "complete":
+            tracked, share = tracked_summary(system.frames_done, system.n_lost)
+            print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%})", file=sys.stderr)
+            if viewer is not None and not held.seen:
+                held.what = None
+                print(f"serving the run: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+                while not held.seen:
+                    time.sleep(0.2)
         if viewer is not None:
             viewer.close()
-        return 130
-    if viewer is not None:
-        serve_until_interrupted(viewer, "serving the run")
-    return 0
+    if error is not None:
+        if error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
+            raise RunFailed(str(error)) from None
+        raise error
+    return exit_code
+
+
+def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog):
+    """Write the poses, stamp and close the recording, then write timings.json with the status as it ends up:
+    (status, reason, error). poses.txt comes first, so that neither the recording nor timings.json says
+    "complete" for a run whose poses could not be written."""
+    if status == "complete":
+        tracked, share = tracked_summary(system.frames_done, system.n_lost)
+        if share < MIN_TRACKED_SHARE:
+            reason = f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), below {MIN_TRACKED_SHARE:.0%}"
+            error = RunFailed(f"{reason}: results marked failed, no poses.txt")
+    if status == "complete" and error is None:
+        try:
+            _write_poses(outs.out, system, dataset)
+        except PlvoError as exc:
+            error, reason = exc, str(exc)
+    if error is not None:
+        status = "failed"
+    try:
+        if recorders:
+            recorders[0].set_status(status, system.frames_done)
+        system.close()
+    except PlvoError as exc:  # the recording's last write failed
+        if error is None:
+            status, reason, error = "failed", str(exc), exc
+            (outs.out / "poses.txt").unlink(missing_ok=True)
+    try:
+        write_json(outs.out / "timings.json", _timings(system, status, reason, fps, len(dataset)))
+    except PlvoError as exc:
+        error = error or exc
+        log.error("%s", exc)
+    runlog.close()
+    return status, reason, error

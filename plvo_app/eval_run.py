@@ -23,7 +23,7 @@ from pathlib import Path
 
 from plvo.config import ABLATIONS
 from plvo.data.registry import ROOT_ENV, parse_frames
-from plvo.errors import PlvoError
+from plvo.errors import OutputError, PlvoError
 from plvo.eval.kiss import KissOptions
 from plvo.eval.report import build_report, report_markdown, write_report
 from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
@@ -164,6 +164,8 @@ def run_run(args: argparse.Namespace) -> int:
     """Build the specs, fan them out, write the report; exit 1 when a task failed (the tables are written)."""
     if args.workers < 1:
         raise PlvoError(f"--workers {args.workers}: must be at least 1")
+    if args.out.exists() and not args.out.is_dir():
+        raise OutputError(f"--out {args.out}: is a file, not an output folder")
     sources = gather_sources(args)
     ablations = parse_ablations(args.ablations)
     if not ablations and not args.kiss:

@@ -21,13 +21,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from plvo.errors import RecordingError
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
 from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
 from plvo.results import TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
+from plvo_app.rrd_sink import RrdFileSink
 from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
                                    gt_in_estimate_world, inlier_colors, thin, zeta_colors)
 
@@ -148,12 +148,9 @@ class RerunRecorder:
         # headers a frame; close() flushes, so Ctrl-C loses nothing.
         self.rec = stream or rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(
             flush_tick=timedelta(seconds=2), flush_num_bytes=8 << 20))
-        if self.path is not None:
-            try:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                self.rec.save(self.path, default_blueprint=blueprint())
-            except (OSError, RuntimeError) as exc:
-                raise RecordingError(f"{self.path}: cannot write the recording ({exc})") from None
+        # Written from Python (plvo_app/rrd_sink.py), not by rec.save: a full disk raises RecordingError at the step
+        # it happens, and the file is cut back to its last complete message, still readable.
+        self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint())
         self._frame: Frame | None = None
         self._T_world_cam: np.ndarray | None = None
         self._trail = EstimateTrail()
@@ -233,9 +230,10 @@ class RerunRecorder:
         self._dirty = True  # the final estimate, with what the workers refined in System.finish()
         self._log_dirty()
         self._flush_scalars()
-        self.rec.flush()
-        if self.path is not None:
-            self.rec.disconnect()
+        if self._sink is not None:
+            self._sink.close()
+        else:
+            self.rec.flush()
 
     # ---- helpers -----------------------------------------------------------------------------------------
     def _scalars(self, prefix: str, values: dict[str, float]) -> None:
@@ -419,6 +417,8 @@ class RerunRecorder:
         self._frames_since_flush += 1
         if self._frames_since_flush >= self.opt.scalar_flush_frames:
             self._flush_scalars()
+        if self._sink is not None:
+            self._sink.pump()  # raises the writer thread's first failed write, if any
 
     def metrics(self, m: MetricsResult) -> None:
         groups: dict[str, dict[str, float]] = defaultdict(dict)

@@ -4,6 +4,9 @@ recording properties. Used by the viser replay and the tests; works on recording
 
 from __future__ import annotations
 
+import logging
+import tempfile
+import warnings
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -14,6 +17,7 @@ import rerun as rr
 
 from plvo.errors import RecordingError
 
+log = logging.getLogger(__name__)
 _SKIP = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
 
 
@@ -54,9 +58,9 @@ def read_rrd(path: str | Path) -> RrdData:
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording file")
     try:
-        store = rr.chunk.RrdReader(p).stream().collect()
+        store = _read_store(p)
     except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
-        raise RecordingError(f"{p}: not a readable Rerun recording ({exc})") from None
+        store = _read_cut_short(p, exc)
     out = RrdData()
     pending: list[tuple[bytes, str, int, dict[str, Any]]] = []  # (row id, entity, frame, components)
     for chunk in store.stream():
@@ -90,6 +94,30 @@ def read_rrd(path: str | Path) -> RrdData:
             level = components.get("TextLog:level") or ["INFO"]
             out.log.append((f, str(level[0]), str(components["TextLog:text"][0])))
     return out
+
+
+def _read_store(p: Path):
+    with warnings.catch_warnings():  # plvo_app/rrd_sink.py writes no footer: Rerun warns, then scans the whole file
+        warnings.filterwarnings("ignore", message="RRD file has no footer")
+        return rr.chunk.RrdReader(p).stream().collect()
+
+
+def _read_cut_short(p: Path, exc: Exception):
+    """A recording whose last message is cut off (a process killed mid-write): read its complete messages."""
+    from plvo_app.rrd_sink import complete_prefix
+
+    size, keep = p.stat().st_size, complete_prefix(p)
+    if not 0 < keep < size:
+        raise RecordingError(f"{p}: not a readable Rerun recording ({exc})") from None
+    with tempfile.TemporaryDirectory(prefix="plvo-rrd-") as tmp:
+        copy = Path(tmp) / p.name
+        with open(p, "rb") as src, open(copy, "wb") as dst:
+            dst.write(src.read(keep))
+        log.warning("%s: cut short after %d of %d bytes; reading its complete part", p, keep, size)
+        try:
+            return _read_store(copy)
+        except Exception as exc2:  # noqa: BLE001
+            raise RecordingError(f"{p}: not a readable Rerun recording ({exc2})") from None
 
 
 def _seconds(value: Any) -> float:

@@ -225,9 +225,15 @@ def _pose_from_row(row: dict[str, Any]) -> np.ndarray:
 
 
 def wait_for_interrupt() -> None:
-    """Block until Ctrl-C: the servers run in background threads and stay up for inspection meanwhile."""
-    try:
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        pass
+    """Block until Ctrl-C or SIGTERM: the servers run in background threads and stay up for inspection meanwhile.
+
+    The signal is taken by a handler rather than as a KeyboardInterrupt, which could land before a `try` is
+    entered (and a viewer quit this way would then report "interrupted")."""
+    from plvo_app.guards import deferred_signals
+
+    if threading.current_thread() is not threading.main_thread():
+        raise RuntimeError("wait_for_interrupt needs the main thread (signals)")
+    with deferred_signals("") as held:
+        held.what = None
+        while not held.seen:
+            time.sleep(0.2)

@@ -22,7 +22,7 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.types import Frame
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   load_rrd, thin, wait_for_interrupt, zeta_colors)
+                                   load_rrd, thin, zeta_colors)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
@@ -365,11 +365,15 @@ class ViserRecorder:
 
 
 def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:
-    """Keep the viewer up until Ctrl-C (plvo-viz after a run, plvo view), then close it."""
+    """Keep the viewer up until Ctrl-C or SIGTERM (plvo view), then close it: quitting is not an error, so the
+    signal is held from before the address is printed until the viewer is closed (no KeyboardInterrupt)."""
     import sys
 
-    print(f"{what}: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
-    try:
-        wait_for_interrupt()
-    finally:
+    from plvo_app.guards import deferred_signals
+
+    with deferred_signals("") as held:
+        held.what = None
+        print(f"{what}: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
+        while not held.seen:
+            time.sleep(0.2)
         viewer.close()

@@ -100,18 +100,35 @@ def _check_scan_size(path: Path, frame: int) -> None:
 
 
 def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
-    """pykitti's calib parser, with every needed key checked for presence and size."""
+    """pykitti's calib parser, with every needed key checked for presence, parseability, size and finite values.
+
+    pykitti skips a line it cannot parse, which would then be reported as missing: the needed keys' lines are
+    read here first, so that a present but unparseable line is reported as such, with its line number."""
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file not found")
     try:
+        text = path.read_text()
         data = kitti_utils.read_calib_file(str(path))
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{path}: cannot parse calibration ({exc})") from None
+    lines = {}
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        key, sep, value = line.partition(":")
+        if sep and key.strip() in needed:
+            lines.setdefault(key.strip(), (lineno, value))
     for key, size in needed.items():
-        if key not in data:
+        if key not in lines:
             raise CalibrationError(f"{path}: no '{key}' matrix")
-        if data[key].size != size:
-            raise CalibrationError(f"{path}: '{key}' has {data[key].size} numbers, expected {size}")
+        lineno, value = lines[key]
+        bad = next((f for f in value.split() if not _is_number(f)), None)
+        if bad is not None:
+            raise CalibrationError(f"{path}:{lineno}: '{key}' is not parseable: {bad!r} is not a number")
+        matrix = np.asarray([float(f) for f in value.split()])
+        if matrix.size != size:
+            raise CalibrationError(f"{path}:{lineno}: '{key}' has {matrix.size} numbers, expected {size}")
+        if not np.all(np.isfinite(matrix)):
+            raise CalibrationError(f"{path}:{lineno}: '{key}' holds NaN or infinite values")
+        data[key] = matrix
     return data
 
 

@@ -16,9 +16,14 @@ from plvo.errors import TrajectoryError
 
 PathLike = str | os.PathLike[str]
 
+# A pose's 3x3 block must be a rotation: |R^T R - I| and |det R - 1| below this. KITTI's ground truth is printed with
+# 7 significant digits (errors ~1e-6); a scaled or all-zero matrix is off by 0.1 or more.
+ROTATION_TOLERANCE = 1e-3
 
-def _read_rows(path: PathLike, n_cols: int, what: str) -> np.ndarray:
-    """Parse a whitespace-separated text file into (N, n_cols) float64, naming the file and line on error."""
+
+def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False):
+    """Parse a whitespace-separated text file into (N, n_cols) float64, naming the file and line on error
+    (with_lines: also the (N,) line numbers)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -26,7 +31,7 @@ def _read_rows(path: PathLike, n_cols: int, what: str) -> np.ndarray:
         raise TrajectoryError(f"{path}: no such pose file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise TrajectoryError(f"{path}: cannot read pose file ({exc})") from None
-    rows = []
+    rows, linenos = [], []
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -44,9 +49,11 @@ def _read_rows(path: PathLike, n_cols: int, what: str) -> np.ndarray:
         if not np.all(np.isfinite(values)):
             raise TrajectoryError(f"{path}:{lineno}: NaN or infinite value")
         rows.append(values)
+        linenos.append(lineno)
     if not rows:
         raise TrajectoryError(f"{path}: no poses in file")
-    return np.asarray(rows, dtype=np.float64)
+    rows = np.asarray(rows, dtype=np.float64)
+    return (rows, np.asarray(linenos)) if with_lines else rows
 
 
 def _is_float(s: str) -> bool:
@@ -69,10 +76,23 @@ def _as_poses(path: PathLike, poses: np.ndarray) -> np.ndarray:
 
 def read_kitti_poses(path: PathLike) -> np.ndarray:
     """KITTI pose file -> (N,4,4) T_world_cam."""
-    rows = _read_rows(path, 12, "a 3x4 pose, row-major")
+    rows, linenos = _read_rows(path, 12, "a 3x4 pose, row-major", with_lines=True)
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    _check_rotations(path, poses[:, :3, :3], linenos)
     return poses
+
+
+def _check_rotations(path: PathLike, R: np.ndarray, linenos: np.ndarray) -> None:
+    """Raise naming the first line whose 3x3 block is not a rotation (all zeros, scaled, sheared, a reflection)."""
+    ortho = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    bad = np.flatnonzero((ortho > ROTATION_TOLERANCE) | (np.abs(det - 1.0) > ROTATION_TOLERANCE))
+    if len(bad):
+        i = int(bad[0])
+        raise TrajectoryError(
+            f"{path}:{linenos[i]}: the 3x3 block is not a rotation (|R^T R - I| = {ortho[i]:.3g}, det = {det[i]:.3g};"
+            f" tolerance {ROTATION_TOLERANCE:g})")
 
 
 def write_kitti_poses(path: PathLike, poses: np.ndarray) -> None:

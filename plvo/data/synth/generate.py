@@ -231,6 +231,27 @@ def write_sequence(root: Path, sequence: str, settings: SynthSettings,
     _render_frames(seq_dir, settings, traj, renderer, gains, progress)
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_stages(folder: Path, prefix: str) -> list[Path]:
+    """Remove staging folders `<prefix><pid>-*` in `folder` whose process is gone; returns those removed."""
+    removed = []
+    for stage in folder.glob(f"{prefix}*"):
+        pid = stage.name[len(prefix):].split("-", 1)[0]
+        if stage.is_dir() and pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            shutil.rmtree(stage, ignore_errors=True)
+            removed.append(stage)
+    return removed
+
+
 def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed: int = 0, speed_mps: float = 10.0,
                       loop: bool = False, stops: bool = False, exposure_change: float = 0.0,
                       write_depth: bool = False, progress: Callable[[int, int], None] | None = None,
@@ -244,7 +265,10 @@ def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed:
     check_request(out_root, sequence, settings, overwrite)
     target = out_root / "sequences" / sequence
     out_root.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".synth-{sequence}-", dir=out_root))
+    remove_stale_stages(out_root, f".synth-{sequence}-")
+    # The pid in the name: a stage left by a killed run (SIGKILL, power loss) is removed by the next run once its
+    # process is gone; SIGTERM and Ctrl-C reach the `finally` below (plvo_app.guards).
+    stage = Path(tempfile.mkdtemp(prefix=f".synth-{sequence}-{os.getpid()}-", dir=out_root))
     try:
         write_sequence(stage, sequence, settings, progress)
         (out_root / "sequences").mkdir(exist_ok=True)

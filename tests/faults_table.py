@@ -1,0 +1,41 @@
+"""The table of docs/faults.md, parsed: tests look their row up by id and assert its exit status and message."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "faults.md"
+
+
+@dataclass(frozen=True)
+class Fault:
+    id: str
+    fault: str
+    message: str  # the text between backticks in the message column ("" when none)
+    exit: int
+    left: str
+    test: str  # tests/file.py::test_name
+
+
+def faults() -> dict[str, Fault]:
+    rows = {}
+    for line in DOC.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 6 or cells[0] in ("id", "---"):
+            continue
+        m = re.search(r"`([^`]*)`", cells[2])
+        rows[cells[0]] = Fault(cells[0], cells[1], m.group(1) if m else "", int(cells[3]), cells[4], cells[5])
+    return rows
+
+
+def fault(fault_id: str) -> Fault:
+    return faults()[fault_id]
+
+
+def one_error_line(stderr: str) -> str:
+    """The single `error:` line of stderr (asserting there is exactly one and no traceback)."""
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr[-3000:]
+    return lines[0]
