@@ -82,7 +82,9 @@ RANGES: dict[str, Range] = {
     "backend.window_keyframes": Range(2), "backend.sigma_point_px": POSITIVE, "backend.sigma_line": POSITIVE,
     "backend.sigma_relative_pose": POSITIVE, "backend.sigma_relative_rotation_deg": POSITIVE,
     "backend.stereo_baseline_m": POSITIVE, "backend.huber_point": POSITIVE, "backend.huber_line": POSITIVE,
-    "backend.iterations": COUNT, "backend.outlier_px": NON_NEGATIVE,
+    "depth.reference_ring_spacing_px": POSITIVE, "depth.adapt_min_ratio": Range(1.0),
+    "depth.adapt_max_ratio": Range(1.0),
+    "backend.iterations": COUNT, "backend.outlier_px": NON_NEGATIVE, "backend.max_lag_frames": COUNT0,
     "loop.min_keyframe_gap": COUNT0, "loop.min_score": NON_NEGATIVE, "loop.consistency": COUNT,
     "loop.min_inliers": Range(4), "loop.min_neighbour_score": NON_NEGATIVE, "loop.neighbours": COUNT,
     "loop.island_gap": COUNT0, "loop.max_verify": COUNT, "loop.loop_cooldown": COUNT0, "loop.ratio": RATIO,
@@ -92,6 +94,7 @@ RANGES: dict[str, Range] = {
     "loop.pgo_iterations": COUNT, "loop.global_ba_iterations": COUNT, "loop.global_ba_max_px": POSITIVE,
     "loop.global_ba_max_move_m": NON_NEGATIVE, "loop.global_ba_move_fraction": NON_NEGATIVE,
     "loop.max_drift_fraction": NON_NEGATIVE, "loop.max_drift_floor_m": NON_NEGATIVE,
+    "loop.max_lag_frames": COUNT0, "loop.global_ba_lag_frames": COUNT0,
 }
 
 # Pairs that must be ordered: (smaller key, larger key).
@@ -100,7 +103,12 @@ ORDERED: tuple[tuple[str, str], ...] = (
     ("tracking.keyframe_every", "tracking.keyframe_max_gap"),
     ("registration.min_range_m", "registration.max_range_m"),
     ("depth.min_depth_m", "depth.max_depth_m"),
+    ("depth.adapt_min_ratio", "depth.adapt_max_ratio"),
 )
+
+
+# String fields with a fixed set of values.
+CHOICES: dict[str, tuple[str, ...]] = {"backend.executor": ("process", "thread")}
 
 
 def numeric_fields(cfg: Any) -> dict[str, Any]:
@@ -126,6 +134,11 @@ def check_ranges(cfg: Any) -> None:
         for v in value if isinstance(value, tuple) else (value,):
             if not rng.contains(float(v)):
                 raise ConfigError(f"config key '{key}' = {v!r} is out of range (must be {rng})")
+    for key, allowed in CHOICES.items():
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        if value not in allowed:
+            raise ConfigError(f"config key '{key}' = {value!r} must be one of {', '.join(allowed)}")
     for small, large in ORDERED:
         if values[small] > values[large]:
             raise ConfigError(f"config key '{small}' = {values[small]!r} must not exceed '{large}' = "

@@ -258,11 +258,13 @@ def test_worker_error_is_one_line(town, tmp_path, capsys, monkeypatch):
     row = fault("worker-error")
     from plvo.backend import worker
 
-    def broken(self, kf):
+    def broken(self, job):
         raise RuntimeError("injected back-end fault")
 
-    monkeypatch.setattr(worker.Backend, "process", broken)
-    status, err = _viz([*town, "--out", "out"], capsys)
+    monkeypatch.setattr(worker.BackendCore, "process", broken)
+    # a worker thread, so that the injected fault is in this process (a worker process runs the same core)
+    (tmp_path / "thread.toml").write_text('[backend]\nexecutor = "thread"\n')
+    status, err = _viz([*town, "--out", "out", "--config", str(tmp_path / "thread.toml")], capsys)
     line = one_error_line(err)
     assert status == row.exit and row.message in line
     timings = _timings(tmp_path / "out")

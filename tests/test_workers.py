@@ -1,0 +1,80 @@
+"""OrderedWorker: the same outputs in the same order inline, in a thread and in a worker process; a failure in
+the worker comes back as one WorkerError line naming the worker and the job; worker logs reach this process."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import pytest
+
+from plvo.errors import WorkerError
+from plvo.workers import OrderedWorker
+
+
+@dataclass(frozen=True)
+class Job:
+    kf_id: int
+    frame_index: int
+
+
+class RunningSum:
+    """A stateful core: each output depends on every job before it, in order."""
+
+    def __init__(self, start: int):
+        self.total = start
+
+    def process(self, job: Job) -> int:
+        if job.kf_id < 0:
+            raise ValueError(f"negative keyframe {job.kf_id}")
+        self.total += job.kf_id
+        logging.getLogger("plvo.test_core").info("keyframe %d summed", job.kf_id)
+        return self.total
+
+
+@pytest.mark.parametrize("mode", ["inline", "thread", "process"])
+def test_outputs_in_submission_order(mode):
+    w = OrderedWorker("summer", RunningSum, (100,), mode)
+    try:
+        for k in range(6):
+            w.submit(Job(k, 3 * k))
+        assert w.pending == 6
+        assert [w.take() for _ in range(6)] == [100, 101, 103, 106, 110, 115]
+        assert w.pending == 0
+    finally:
+        w.close()
+
+
+def test_process_worker_logs_come_back_with_the_output(caplog):
+    with caplog.at_level(logging.INFO, logger="plvo"):  # the worker logs at the level "plvo" had when it started
+        w = OrderedWorker("summer", RunningSum, (0,), "process")
+        try:
+            w.submit(Job(7, 21))
+            assert w.take() == 7
+        finally:
+            w.close()
+    assert "keyframe 7 summed" in caplog.text
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_a_failing_core_is_one_line_naming_worker_and_job(mode):
+    w = OrderedWorker("back end", RunningSum, (0,), mode)
+    try:
+        w.submit(Job(1, 3))
+        w.submit(Job(-2, 6))
+        assert w.take() == 1
+        with pytest.raises(WorkerError) as err:
+            w.take()
+        msg = str(err.value)
+        assert "\n" not in msg
+        assert msg == "the back end failed on keyframe -2 at frame 6: ValueError: negative keyframe -2"
+        with pytest.raises(WorkerError):  # and it stays failed
+            w.submit(Job(3, 9))
+    finally:
+        w.close()
+
+
+def test_inline_failure_is_the_same_line():
+    w = OrderedWorker("loop closer", RunningSum, (0,), "inline")
+    with pytest.raises(WorkerError, match="the loop closer failed on keyframe -1 at frame 0: ValueError"):
+        w.submit(Job(-1, 0))
