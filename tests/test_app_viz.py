@@ -212,7 +212,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
         return synth_seq
 
     monkeypatch.setattr("plvo.data.synth.default_sequence_root", fake_generate)
-    dataset, label = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
+    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
     err = capsys.readouterr().err
     assert calls and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5
     assert "no --root and no $KITTI_ROOT: running the synthetic town" in err and "generated once" in err
@@ -224,7 +224,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
     key = cache.settings_hash(DEFAULT_SETTINGS, DEFAULT_SEQUENCE)
     (tmp_path / "cache" / "synth").mkdir(parents=True)
     (tmp_path / "cache" / "synth" / key).symlink_to(synth_seq, target_is_directory=True)
-    dataset, label = cmd_viz._open(parser.parse_args(["--frames", "0:20"]))
+    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:20"]))
     err = capsys.readouterr().err
     assert len(dataset) == 20 and dataset.gt_T_world_cam is not None and "cached in" in err
 
