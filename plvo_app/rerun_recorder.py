@@ -290,7 +290,7 @@ class RerunRecorder:
         if self._hashes:
             frames = sorted(self._hashes)
             self.rec.send_property("plvo_inputs", rr.AnyValues(
-                frames=frames, image_sha256=[self._hashes[f][0] for f in frames],
+                frames=json.dumps(frames), image_sha256=[self._hashes[f][0] for f in frames],
                 scan_sha256=[self._hashes[f][1] for f in frames]))
         self.rec.flush()
         if self.path is not None:

@@ -63,11 +63,14 @@ def machine() -> dict[str, str]:
            platform.machine(), "cpus": str(os.cpu_count()), "python": sys.version.split()[0],
            "numpy": np.__version__, "opencv": cv2.__version__,
            "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "")}
-    for mod in ("gtsam", "open3d", "scipy", "poselib", "rerun"):
+    from importlib.metadata import PackageNotFoundError, version
+
+    for name, dist in (("gtsam", "gtsam"), ("open3d", "open3d"), ("scipy", "scipy"), ("poselib", "poselib"),
+                       ("rerun", "rerun-sdk")):
         try:
-            out[mod] = str(getattr(__import__(mod), "__version__", "?"))
-        except Exception:  # noqa: BLE001 - a missing or broken optional library is recorded as such
-            out[mod] = "not importable"
+            out[name] = version(dist)
+        except PackageNotFoundError:
+            out[name] = "not installed"
     return out
 
 
