@@ -44,7 +44,7 @@ def _outputs(cwd: Path, stderr: str) -> tuple[Path, Path]:
 @pytest.fixture(scope="module")
 def kitti_run(kitti_root, tmp_path_factory):
     cwd = tmp_path_factory.mktemp("viz")
-    proc = viz(["--root", str(kitti_root), "--seq", "04", "--frames", "3:10", "--no-serve"], cwd)
+    proc = viz(["--root", str(kitti_root), "--seq", "04", "--frames", "3:10", "--no-serve", "--record", "full"], cwd)
     assert proc.returncode == 0, proc.stderr
     rrd, out = _outputs(cwd, proc.stderr)
     return cwd, proc, rrd, out
