@@ -113,8 +113,11 @@ def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay
     moved = _until(lambda: _scene_pixels(page, tmp_path / "moved.png"), lambda img: _changed(img, first) > 0.005)
     assert _changed(moved, first) > 0.005
 
+    handles = dict(v._handles)
     page.get_by_role("checkbox", name="scan").uncheck()
-    assert _wait(lambda: not v.toggles["scan"].value and "scan" not in v._handles)
+    assert _wait(lambda: not v.toggles["scan"].value and not v._handles["scan"].visible)
+    # a toggle hides one node; the others are the same nodes, not removed and re-sent
+    assert all(v._handles[k] is h for k, h in handles.items())
 
     page.get_by_role("button", name="Play").click()
     assert _wait(lambda: v.playing and v.shown_frame != 6, timeout=10), "play did not move the frame"
