@@ -141,6 +141,27 @@ class DetailPolicy:
         return sorted(f for f in self._held if a <= f < b)
 
 
+class Lazy:
+    """Detail held back that is costly to make (the JPEG): made only if an event wants its frame."""
+
+    def __init__(self, fn, *args):
+        self.fn, self.args = fn, args
+
+    def __call__(self):
+        return self.fn(*self.args)
+
+
+class WarningCapture(logging.Handler):
+    """Collects the pipeline's warnings (from any thread); the recorder drains them from the tracking thread."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: deque[logging.LogRecord] = deque()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
 def measure_levels(dataset, config, frames: int | None = None, out_dir: str | Path | None = None,
                    levels: tuple[str, ...] = LEVELS, keep: bool = False) -> dict[str, dict[str, float]]:
     """Run `dataset` (its first `frames` frames) once, recorded at every level side by side; per level the bytes
@@ -173,11 +194,12 @@ def measure_levels(dataset, config, frames: int | None = None, out_dir: str | Pa
             system.close()
         out = {}
         n_kf = recorders[0]._policy._n_keyframes if recorders else 0
-        for lv in levels:
+        for lv, rec in zip(levels, recorders):
             size = paths[lv].stat().st_size
             out[lv] = {"frames": n, "bytes": size, "bytes_per_frame": size / max(n, 1),
                        "mb_per_4541_frames": size / max(n, 1) * 4541 / 1e6, "path": str(paths[lv]) if keep else "",
-                       "keyframes": n_kf}
+                       "keyframes": n_kf, "events": len(rec._policy.events),
+                       "event_windows": rec._policy.n_event_windows}
         if {"summary", "default", "full"} <= set(out) and n_kf:
             # The default's event detail is bounded (it does not grow with frames); its stride keyframes grow, each
             # costing about a keyframe's share of the full level's detail.

@@ -34,6 +34,8 @@ from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, Met
 from plvo.results import TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
 from plvo_app.recording_levels import DetailOptions, DetailPolicy
+from plvo_app.recording_levels import Lazy as _Lazy
+from plvo_app.recording_levels import WarningCapture as _WarningCapture
 from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, encode_inputs, file_sha256, machine
 from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
                                    gt_in_estimate_world, inlier_colors, thin, zeta_colors)
@@ -359,7 +361,9 @@ class RerunRecorder:
             return
         for path, when in list(self._shown.items()):
             if when == "frame" or frame == self._kf_frame:
-                self.rec.log(path, rr.Clear(recursive=False))
+                # the image's entity also holds the static Pinhole, which a Clear may wrongly hide in the viewer
+                # (rerun-io/rerun#11919): empty the image's own components instead
+                self.rec.log(path, rr.EncodedImage.cleared() if path == E["image"] else rr.Clear(recursive=False))
                 del self._shown[path]
 
     def _drain_warnings(self) -> None:
@@ -546,7 +550,8 @@ class RerunRecorder:
     def loop(self, lr: LoopResult) -> None:
         verdict = "accepted" if lr.accepted else "rejected"
         self._text(f"loop keyframe {lr.query_keyframe} -> {lr.match_keyframe} {verdict} (score {lr.score:.3f}, "
-                   f"{lr.n_inliers} inliers): {lr.reason}", rr.TextLogLevel.INFO if lr.accepted else rr.TextLogLevel.DEBUG)
+                   f"{lr.n_inliers} inliers): {lr.reason}",
+                   rr.TextLogLevel.INFO if lr.accepted else rr.TextLogLevel.DEBUG)
         if lr.accepted or lr.n_inliers >= self.opt.detail.loop_min_inliers:  # not each bag-of-words near miss
             self._event(f"loop {verdict}")
         kf = self._trail.kf_pose
@@ -583,27 +588,6 @@ class RerunRecorder:
                 groups["backend"][name] = value
         for prefix, values in groups.items():
             self._scalars(prefix, values)
-
-
-class _Lazy:
-    """Detail held back that is costly to make (the JPEG): made only if an event wants its frame."""
-
-    def __init__(self, fn, *args):
-        self.fn, self.args = fn, args
-
-    def __call__(self):
-        return self.fn(*self.args)
-
-
-class _WarningCapture(logging.Handler):
-    """Collects the pipeline's warnings (from any thread); the recorder drains them from the tracking thread."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.records: deque[logging.LogRecord] = deque()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
 
 
 HASH_HEX = 24  # sha256 prefix kept a file (96 bits): 2 x 4541 full hashes would be 0.6 MB of a 25 MB budget

@@ -17,12 +17,14 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import rerun as rr
 
 from plvo.errors import RecordingError
 
 _TIMES = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
 CLEAR = "Clear:is_recursive"
+EMPTIED = "#emptied"  # index key suffix: rows where a component was logged empty
 
 
 class RrdIndex:
@@ -66,18 +68,27 @@ class RrdIndex:
             ids = batch.column("rerun.controls.RowId").to_pylist()
             frames.update(int(f) for f in np.unique(fr))
             for n in names:
-                valid = batch.column(n).is_valid().to_numpy(zero_copy_only=False)
+                col = batch.column(n)
+                valid = col.is_valid().to_numpy(zero_copy_only=False)
+                if pa.types.is_list(col.type):  # an empty list is a cleared component (e.g. EncodedImage.cleared())
+                    empty = pc.fill_null(pc.equal(pc.list_value_length(col), 0), False).to_numpy(zero_copy_only=False)
+                    emptied = rows.setdefault((entity, n + EMPTIED), [])
+                    emptied += [(int(fr[r]), ids[r], bi, r) for r in np.flatnonzero(valid & empty)]
+                    valid = valid & ~empty
                 dest = rows.setdefault((entity, n), [])
                 dest += [(int(fr[r]), ids[r], bi, r) for r in np.flatnonzero(valid)]
         self.frames = sorted(frames)
         self._index: dict[tuple[str, str], tuple[list[int], list[tuple[int, int]]]] = {}
+        self._last_id: dict[tuple[str, str], dict[int, bytes]] = {}  # row id of each frame's latest row
         for key, rs in rows.items():
             rs.sort(key=lambda r: (r[0], r[1]))
             last: dict[int, tuple[int, int]] = {}
-            for f, _, bi, r in rs:  # the latest row of each frame
-                last[f] = (bi, r)
+            ids_of: dict[int, bytes] = {}
+            for f, rid, bi, r in rs:  # the latest row of each frame
+                last[f], ids_of[f] = (bi, r), rid
             fs = sorted(last)
             self._index[key] = (fs, [last[f] for f in fs])
+            self._last_id[key] = ids_of
 
     def frames_of(self, entity: str, component: str) -> list[int]:
         return self._index.get((entity, component), ([], []))[0]
@@ -90,10 +101,13 @@ class RrdIndex:
         if not i:
             return None
         f = fs[i - 1]
-        cf = self._index.get((entity, CLEAR), ([], []))[0]
-        j = bisect.bisect_right(cf, frame)
-        if j and cf[j - 1] > f:
-            return None
+        data_id = self._last_id[(entity, component)][f]
+        for key in ((entity, CLEAR), (entity, component + EMPTIED)):
+            cleared = self._index.get(key, ([], []))[0]
+            j = bisect.bisect_right(cleared, frame)
+            # a clear after the data, or at its frame but logged later (held-back detail is logged after the clear)
+            if j and (cleared[j - 1] > f or (cleared[j - 1] == f and self._last_id[key][f] > data_id)):
+                return None
         return (f, *where[i - 1])
 
     def value(self, batch: int, row: int, component: str) -> pa.Array:

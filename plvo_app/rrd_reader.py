@@ -91,7 +91,7 @@ def read_rrd(path: str | Path, content: list[str] | None = None) -> RrdData:
             if times is not None and times[i] is not None:
                 out.sensor_time[int(f)] = _seconds(times[i])
     for _, entity, f, components in sorted(pending, key=lambda r: r[0]):  # row ids grow with logging order
-        if set(components) == {"Clear:is_recursive"}:
+        if set(components) == {"Clear:is_recursive"} or (components and all(v == [] for v in components.values())):
             out.cleared[entity].append(f)
             continue
         out.temporal[entity].setdefault(f, {}).update(components)

@@ -44,7 +44,8 @@ def dataset_identity(dataset, root: Path | str | None, frames_arg: str | None, s
 
 
 def calib_to_dict(c: Calibration) -> dict[str, Any]:
-    return {"K": np.asarray(c.K, float).ravel().tolist(), "T_cam_velo": np.asarray(c.T_cam_velo, float).ravel().tolist(),
+    return {"K": np.asarray(c.K, float).ravel().tolist(),
+            "T_cam_velo": np.asarray(c.T_cam_velo, float).ravel().tolist(),
             "width": int(c.width), "height": int(c.height),
             "T_cam0_cam": np.asarray(c.T_cam0_cam, float).ravel().tolist(),
             "lidar_elevation_offset_deg": float(getattr(c, "lidar_elevation_offset_deg", 0.0))}

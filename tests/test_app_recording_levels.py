@@ -45,7 +45,9 @@ def _record(path, detail: DetailOptions):
     rec = RerunRecorder(path, RerunOptions(detail=detail))
     drive(WarnAt(rec), N, backend_lag=1)
     rec.close()
-    return read_rrd(path)
+    data = read_rrd(path)
+    data.path = path
+    return data
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +94,17 @@ def test_default_detail_on_stride_keyframes_and_around_events(default):
     assert max(_window(LOST_FRAME)) + 1 in default.cleared["/world/camera/image"]
     warned = [t for f, level, t in default.log if f == WARN_FRAME and level == "WARN"]
     assert warned and "discarded" in warned[0]
+
+
+def test_replay_store_honours_the_clears(default):
+    from plvo_app.scene_common import load_rrd
+
+    store = load_rrd(default.path)
+    end = max(_window(LOST_FRAME)) + 1
+    assert store.latest("image", end - 1) is not None and store.latest("image", end) is None
+    # frame 1 was cleared when it ended, then its held-back image was written when the loss at frame 4 wanted it
+    assert 1 in default.cleared["/world/camera/image"] and store.latest("image", 1) is not None
+    assert store.latest("pose", end) is not None  # the summary is not cleared
 
 
 def test_map_thinned_outside_detail_full_inside(default):
