@@ -32,6 +32,8 @@ log = logging.getLogger(__name__)
 COMPARED = ["/world/camera", "/metrics/**", "/log"]
 # pipeline order: at the first frame that differs, the earliest stage is named as the one that changed
 STAGE_ORDER = ["features", "matching", "tracking", "keyframes", "depth", "map", "backend", "loop"]
+# tracking counts that follow from the keyframe decision: a changed decision is named rather than these
+KEYFRAME_CONSEQUENCES = {f"tracking/{n}": "map" for n in ("new_points", "new_lines")}
 
 
 @dataclass
@@ -257,7 +259,7 @@ def compare(old: RrdData, new: RrdData, tol_m: float, tol_deg: float, report: Re
         for f in sorted((set(va) | set(vb)) & set(range(lo, hi + 1))):
             x, y = va.get(f), vb.get(f)
             if x is None or y is None or abs(x - y) > 1e-9 * max(1.0, abs(x)):
-                stage = name.split("/")[0]
+                stage = KEYFRAME_CONSEQUENCES.get(name, name.split("/")[0])
                 rank = STAGE_ORDER.index(stage) if stage in STAGE_ORDER else len(STAGE_ORDER)
                 changes.append((f, rank, f"{name} {_fmt(x)} -> {_fmt(y)}"))
                 break

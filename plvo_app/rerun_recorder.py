@@ -30,8 +30,8 @@ from plvo.errors import RecordingError
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
-from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
-from plvo.results import TrackingResult
+from plvo.results import EDGE_COVISIBILITY, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult
+from plvo.results import TimingResult, TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
 from plvo_app.recording_levels import DetailOptions, DetailPolicy
 from plvo_app.recording_levels import Lazy as _Lazy
@@ -82,7 +82,7 @@ ENTITIES: dict[str, Entity] = {
                "back end", "summary"),
         Entity("world/keyframes", "Points3D", "keyframe positions (refined by the back end)", "keyframe", "summary"),
         Entity("world/graph", "LineStrips3D", "factor-graph edges: zeta red (0) to green (exp(-2) or more); loops "
-               "magenta", "back end", "summary"),
+               "magenta; covisibility edges on detail frames only", "back end", "summary"),
         Entity("world/loops", "LineStrips3D", "accepted loop edges", "event", "summary"),
         Entity("world/trajectory/est", "LineStrips3D", "estimated trajectory, every frame through its keyframe's "
                "refined pose", "keyframe", "summary"),
@@ -522,9 +522,19 @@ class RerunRecorder:
             self._event("large correction")
         self._trail.on_graph(g.keyframe_ids, poses)  # drawn at the next keyframe (and on close)
         if len(g.edges):
-            strips = poses[:, :3, 3][np.asarray(g.edges)].astype(np.float32)
-            self.rec.log(E["graph"], rr.LineStrips3D(strips, colors=zeta_colors(g.zeta, g.edge_kind),
-                                                     radii=rr.Radius.ui_points(2.5)))
+            kind = np.asarray(g.edge_kind)
+
+            def strips(keep: np.ndarray) -> rr.LineStrips3D:
+                return rr.LineStrips3D(poses[:, :3, 3][np.asarray(g.edges)[keep]].astype(np.float32),
+                                       colors=zeta_colors(np.asarray(g.zeta)[keep], kind[keep]),
+                                       radii=rr.Radius.ui_points(2.5))
+
+            everything = np.ones(len(kind), bool)
+            if self._policy.want(self._at) or not np.any(kind == EDGE_COVISIBILITY):
+                self.rec.log(E["graph"], strips(everything))
+            else:  # the odometry edges with their zeta and the loops; the covisibility edges with the detail
+                self.rec.log(E["graph"], strips(kind != EDGE_COVISIBILITY))
+                self._policy.defer(self._at, (E["graph"], strips(everything)))
         self._scalars("backend", {"scale": g.scale, "edges": len(g.edges)})
 
     def map(self, m: MapResult) -> None:
