@@ -196,6 +196,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = _resolve_config(args)
     options = recorder_options(args)
     dataset, label, identity = _open(args)
+    emb = options.embed_inputs
+    if emb is not None and not any(emb[0] <= f < emb[1] for f in dataset.frame_indices):
+        raise DatasetError(f"--embed-inputs {args.embed_inputs}: none of these frames runs (frames "
+                           f"{dataset.frame_indices[0]}..{dataset.frame_indices[-1]})")
     outs = _outputs(args, label)
     info = RunInfo(
         name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,

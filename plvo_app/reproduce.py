@@ -252,11 +252,11 @@ def compare(old: RrdData, new: RrdData, tol_m: float, tol_deg: float, report: Re
         if report.pose_frame is None and (dm > tol_m or ddeg > tol_deg):
             report.pose_frame, report.pose_diff = f, (dm, ddeg)
     sa, sb = _stage_values(old), _stage_values(new)
-    lo, hi = report.frames[0], report.frames[-1]
+    compared = set(report.frames) & set(a)  # a clip holds only its window: the frames before it are not compared
     changes: list[tuple[int, int, str]] = []
     for name in sorted(set(sa) | set(sb)):
         va, vb = sa.get(name, {}), sb.get(name, {})
-        for f in sorted((set(va) | set(vb)) & set(range(lo, hi + 1))):
+        for f in sorted((set(va) | set(vb)) & compared):
             x, y = va.get(f), vb.get(f)
             if x is None or y is None or abs(x - y) > 1e-9 * max(1.0, abs(x)):
                 stage = KEYFRAME_CONSEQUENCES.get(name, name.split("/")[0])

@@ -100,3 +100,11 @@ def test_not_a_recording_is_a_one_line_error(tmp_path):
     bad.write_bytes(b"nope")
     with pytest.raises(RecordingError, match="bad.rrd"):
         reproduce(bad)
+
+
+def test_a_clip_reproduces_with_its_dataset(run, tmp_path):
+    root, rrd = run
+    out = tmp_path / "clip.rrd"
+    clip(rrd, 3, 7, out)
+    report = reproduce(out, root)  # the whole run again, compared on the clip's frames
+    assert report.reproduces, report.lines(0.01, 0.1)
