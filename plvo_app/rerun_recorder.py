@@ -82,7 +82,11 @@ ENTITIES: dict[str, Entity] = {
                "back end", "summary"),
         Entity("world/keyframes", "Points3D", "keyframe positions (refined by the back end)", "keyframe", "summary"),
         Entity("world/graph", "LineStrips3D", "factor-graph edges: zeta red (0) to green (exp(-2) or more); loops "
-               "magenta; covisibility edges on detail frames only", "back end", "summary"),
+               "magenta. The whole graph: each back-end step at the full level and on detail frames, else every "
+               "summary_every_keyframes keyframes and on close (it grows with the run); covisibility edges with "
+               "the detail only", "back end", "summary"),
+        Entity("world/graph/recent", "LineStrips3D", "the edges among the last summary_every_keyframes keyframes, "
+               "each back-end step the whole graph is not written", "back end", "summary"),
         Entity("world/loops", "LineStrips3D", "accepted loop edges", "event", "summary"),
         Entity("world/trajectory/est", "LineStrips3D", "estimated trajectory, every frame through its keyframe's "
                "refined pose", "keyframe", "summary"),
@@ -106,7 +110,7 @@ E = {
     "line_patches": "world/camera/image/line_patches", "planes": "world/depth/planes", "lidar": "world/lidar",
     "scan": "world/lidar/scan", "depth_points": "world/depth/points", "depth_lines": "world/depth/lines",
     "map_points": "world/map/points", "map_lines": "world/map/lines", "keyframes": "world/keyframes",
-    "graph": "world/graph", "loops": "world/loops", "est": "world/trajectory/est", "gt": "world/trajectory/gt",
+    "graph": "world/graph", "graph_recent": "world/graph/recent", "loops": "world/loops", "est": "world/trajectory/est", "gt": "world/trajectory/gt",
 }
 assert set(E.values()) <= set(ENTITIES)
 
@@ -197,6 +201,8 @@ class RerunRecorder:
         self._shown: dict[str, str] = {}  # detail entity -> its cadence, written since it was last cleared
         self._kf_frame = -1  # the frame of the last keyframe
         self._kfs_since_summary = 0
+        self._kfs_since_graph = 1 << 30  # the first graph is written whole
+        self._last_graph: tuple[int, GraphResult] | None = None  # not yet written whole: written on close
         self._poses_buf: tuple[list[int], list[float], list[np.ndarray]] = ([], [], [])
         self._warnings = _WarningCapture()
         self._input_files: dict[int, tuple[str, str]] = {}
@@ -288,6 +294,10 @@ class RerunRecorder:
         self._drain_warnings()
         self._dirty = True  # the final estimate, with what the workers refined in System.finish()
         self._log_dirty(force=True)
+        if self._last_graph is not None:  # the final graph, whole
+            self._at = self._last_graph[0]
+            self._set_time(self._at)
+            self._log_graph(self._last_graph[1], whole=True)
         self._flush_scalars()
         if self._hashes:
             frames = sorted(self._hashes)
@@ -444,6 +454,7 @@ class RerunRecorder:
         self._text(f"frame {kf.frame_index}: keyframe {kf.keyframe_id} ({kf.reason}){new}")
         self._kf_frame = int(kf.frame_index)
         self._kfs_since_summary += 1
+        self._kfs_since_graph += 1
         self._write_held(self._policy.keyframe(self._at))
         fs = self._features
         if fs is not None:  # raw LSD output: on keyframes only (~11 kB a frame otherwise)
@@ -521,6 +532,27 @@ class RerunRecorder:
                        rr.TextLogLevel.WARN)
             self._event("large correction")
         self._trail.on_graph(g.keyframe_ids, poses)  # drawn at the next keyframe (and on close)
+        whole = self._policy.everything or self._policy.want(self._at) or \
+            self._kfs_since_graph >= self.opt.summary_every_keyframes
+        self._log_graph(g, whole)
+        self._scalars("backend", {"scale": g.scale, "edges": len(g.edges)})
+
+    def _log_graph(self, g: GraphResult, whole: bool) -> None:
+        """The whole graph grows with the run: written whole only now and then (see ENTITIES), else its recent
+        edges, so that a long run's recording grows linearly."""
+        poses = np.asarray(g.T_world_cam, float)
+        self._last_graph = None if whole else (self._at, g)
+        if whole:
+            self._kfs_since_graph = 0
+        elif len(g.edges):
+            ids = np.asarray(g.keyframe_ids)
+            recent = ids[np.asarray(g.edges)].min(axis=1) > ids.max() - self.opt.summary_every_keyframes
+            kind = np.asarray(g.edge_kind)
+            keep = recent & (kind != EDGE_COVISIBILITY)
+            self.rec.log(E["graph_recent"], rr.LineStrips3D(
+                poses[:, :3, 3][np.asarray(g.edges)[keep]].astype(np.float32),
+                colors=zeta_colors(np.asarray(g.zeta)[keep], kind[keep]), radii=rr.Radius.ui_points(2.5)))
+            return
         if len(g.edges):
             kind = np.asarray(g.edge_kind)
 
@@ -535,7 +567,6 @@ class RerunRecorder:
             else:  # the odometry edges with their zeta and the loops; the covisibility edges with the detail
                 self.rec.log(E["graph"], strips(kind != EDGE_COVISIBILITY))
                 self._policy.defer(self._at, (E["graph"], strips(everything)))
-        self._scalars("backend", {"scale": g.scale, "edges": len(g.edges)})
 
     def map(self, m: MapResult) -> None:
         pts, lines = np.asarray(m.points, np.float32), np.asarray(m.lines, np.float32)
