@@ -542,7 +542,7 @@ class RerunRecorder:
         edges, so that a long run's recording grows linearly."""
         poses = np.asarray(g.T_world_cam, float)
         self._last_graph = None if whole else (self._at, g)
-        if whole:
+        if whole and len(g.edges):
             self._kfs_since_graph = 0
         elif len(g.edges):
             ids = np.asarray(g.keyframe_ids)
