@@ -30,7 +30,7 @@ from plvo.errors import RecordingError
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
-from plvo.results import EDGE_COVISIBILITY, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult
+from plvo.results import EDGE_COVISIBILITY, EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult
 from plvo.results import TimingResult, TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
 from plvo_app.recording_levels import DetailOptions, DetailPolicy
@@ -131,6 +131,7 @@ class RerunOptions:
     map_summary_lines: int = 25
     # Outside detail frames the keyframes and the estimate (they grow with the run) are redrawn this often
     summary_every_keyframes: int = 20
+    graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
     embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
 
 
@@ -395,6 +396,8 @@ class RerunRecorder:
         self._dirty = False
         self._kfs_since_summary = 0
         kfs = self._trail.keyframe_positions()
+        if not (self._policy.everything or self._policy.want(self._at)):
+            kfs = kfs[thin(len(kfs), self.opt.trajectory_max_points)]
         if len(kfs):
             self.rec.log(E["keyframes"], rr.Points3D(kfs.astype(np.float32), colors=[ORANGE],
                                                      radii=rr.Radius.ui_points(5)))
@@ -562,11 +565,17 @@ class RerunRecorder:
                                        radii=rr.Radius.ui_points(2.5))
 
             everything = np.ones(len(kind), bool)
-            if self._policy.want(self._at) or not np.any(kind == EDGE_COVISIBILITY):
+            if self._policy.want(self._at):
                 self.rec.log(E["graph"], strips(everything))
-            else:  # the odometry edges with their zeta and the loops; the covisibility edges with the detail
-                self.rec.log(E["graph"], strips(kind != EDGE_COVISIBILITY))
-                self._policy.defer(self._at, (E["graph"], strips(everything)))
+            else:  # the odometry edges (at most graph_summary_edges, by stride) with their zeta and every loop;
+                # the covisibility edges and the rest with the detail
+                summary = np.zeros(len(kind), bool)
+                odometry = np.flatnonzero(kind != EDGE_COVISIBILITY)
+                summary[odometry[thin(len(odometry), self.opt.graph_summary_edges)]] = True
+                summary |= kind == EDGE_LOOP
+                self.rec.log(E["graph"], strips(summary))
+                if not summary.all():
+                    self._policy.defer(self._at, (E["graph"], strips(everything)))
 
     def map(self, m: MapResult) -> None:
         pts, lines = np.asarray(m.points, np.float32), np.asarray(m.lines, np.float32)
