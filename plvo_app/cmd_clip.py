@@ -18,6 +18,7 @@ import rerun as rr
 
 from plvo.errors import RecordingError
 from plvo_app.recording_levels import parse_window
+from plvo_app.rrd_compact import write_chunks
 
 NO_CARRY = ("/metrics", "/log", "/inputs")  # a value of these belongs to its frame, not to the frames after it
 
@@ -34,8 +35,6 @@ def _frame_range(batch: pa.RecordBatch) -> pa.Array | None:
 
 def clip(src: Path, a: int, b: int, out: Path) -> int:
     """Write frames [a, b) of `src` (and its static data) to `out`; returns the number of rows kept."""
-    from plvo_app.rerun_recorder import blueprint
-
     if not src.is_file():
         raise RecordingError(f"{src}: no such recording file")
     if out.exists():
@@ -74,14 +73,9 @@ def clip(src: Path, a: int, b: int, out: Path) -> int:
         sub = sub.set_column(i, sub.schema.field(i), moved)
         kept += rr.chunk.Chunk.from_record_batch(sub)  # keeps the row ids: their order settles same-frame rows
         n_rows += len(rows)
-    store = rr.chunk.ChunkStore.from_chunks(kept)
+    kept.append(rr.chunk.Chunk.from_property("plvo_clip", rr.AnyValues(source=str(src), frames=f"{a}:{b}")))
     out.parent.mkdir(parents=True, exist_ok=True)
-    rec = rr.RecordingStream("plvo", recording_id=f"{src.stem}_{a}_{b}")
-    rec.save(out, default_blueprint=blueprint())
-    rec.send_chunks(store.stream().collect(optimize=rr.chunk.OptimizationProfile.LIVE))
-    rec.send_property("plvo_clip", rr.AnyValues(source=str(src), frames=f"{a}:{b}"))
-    rec.flush()
-    rec.disconnect()
+    write_chunks(out, kept, recording_id=f"{src.stem}_{a}_{b}")
     return n_rows
 
 

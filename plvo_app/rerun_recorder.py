@@ -133,6 +133,7 @@ class RerunOptions:
     summary_every_keyframes: int = 20
     graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
     embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
+    compact_on_close: bool | None = None  # merge the chunks on close (plvo_app.rrd_compact); None: unless "full"
 
 
 def blueprint() -> rrb.Blueprint:
@@ -308,6 +309,11 @@ class RerunRecorder:
         self.rec.flush()
         if self.path is not None:
             self.rec.disconnect()
+            compact = self.opt.compact_on_close
+            if compact or (compact is None and not self._policy.everything):
+                from plvo_app.rrd_compact import compact as compact_file
+
+                compact_file(self.path)
 
     # ---- helpers -----------------------------------------------------------------------------------------
     def _scalars(self, prefix: str, values: dict[str, float]) -> None:
