@@ -42,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
     p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
     p.add_argument("--record", default="default", choices=("summary", "default", "full"),
-                   help="recording level: summary (the whole-run picture), default (plus full detail on every 50th "
+                   help="recording level: summary (the whole-run picture), default (plus full detail on every 100th "
                    "keyframe and around events: tracking lost, loops, discarded optimisations, large corrections, "
                    "slow frames), full (every layer on every frame)")
     p.add_argument("--detail", action="append", default=[], metavar="A:B",

@@ -192,3 +192,26 @@ def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
         page.close()
     finally:
         v.close()
+
+
+def test_live_store_stays_bounded():
+    """Over a long live run only the last `keep` images and scans are kept whole, older maps thinned, and the
+    estimate is a view of one trail rather than a copy a keyframe."""
+    from plvo_app.viser_viewer import TrailView
+
+    viewer = ViserViewer(SceneStore(), port=_free_port(), live=True)
+    try:
+        rec = ViserRecorder(viewer, min_interval_s=1e9, keep=2)
+        drive(rec, N)
+        s = viewer.store
+        images = [s.value_at("image", f) for f in range(N)]
+        assert sum(v is not None for v in images) == 2 and images[-1] is not None
+        scans = [v for v in s.layers["scan"][1] if v is not None]
+        assert len(scans) == 2 and s.count("scan") == 4  # every keyframe still has its entry
+        maps = s.layers["map_points"][1]
+        assert [len(m) for m in maps] == [20, 40, 600, 800]  # the fake's 200 a keyframe; older ones tenfold fewer
+        est = s.layers["est"][1]
+        assert all(isinstance(e, TrailView) for e in est)
+        np.testing.assert_allclose(np.asarray(est[-1])[-1], pose(N - 1)[:3, 3], atol=1e-5)
+    finally:
+        viewer.close()
