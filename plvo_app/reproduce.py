@@ -158,6 +158,10 @@ def open_inputs(path: Path, data: RrdData, root: Path | None) -> tuple[Any, str,
         if len(ds):
             return ds, "the inputs embedded in the recording", []
     recorded_root = str(ident.get("root", ""))
+    if root is None and ident.get("synthetic_town") in (True, "True", "true") and not Path(recorded_root).is_dir():
+        from plvo_app.cmd_viz import _synthetic_town
+
+        root = _synthetic_town()[0]  # the default town, generated here as it was there (the hashes check it)
     if root is None:
         if not recorded_root or not Path(recorded_root).is_dir():
             raise RecordingError(f"{path}: give --root DIR: the recording was made from {recorded_root or '?'}, "
