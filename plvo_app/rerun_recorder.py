@@ -7,8 +7,8 @@ the recording level's (plvo_app.recording_levels): every entity of level "summar
 of level "detail" on the level's detail frames only (all frames at `--record full`), so that a whole sequence stays
 a file a person can attach to a bug report. Detail that stops is cleared (a Clear at the first frame without it), so
 a viewer never shows a stale image as the current one.
-Scalars and the camera pose are buffered and sent as columns every few frames (and on close): one `rr.log` costs
-~0.2 ms and ~60 bytes of row overhead, and a frame has ~30 of them.
+Scalars and the camera pose are buffered and sent as columns every 200 frames (and on close): one `rr.log` costs
+~0.2 ms, and a frame has ~30 of them.
 """
 
 from __future__ import annotations
