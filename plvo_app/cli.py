@@ -29,6 +29,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "view": ("plvo_app.cmd_view", "inspect a saved .rrd recording in the viser viewer"),
     "synth": ("plvo_app.cmd_synth", "generate a synthetic town sequence in the KITTI odometry layout"),
     "eval": ("plvo_app.cmd_eval", "evaluate trajectories with the KITTI metric; run evaluations and ablations"),
+    "reproduce": ("plvo_app.cmd_reproduce", "rerun a recording's frames with its config; report where it departs"),
+    "clip": ("plvo_app.cmd_clip", "cut a recording down to a window of frames (for a bug report)"),
     "bench": ("plvo_app.cmd_bench", "time the stages and the whole system; writes JSON"),
     "vocab": ("plvo_app.cmd_vocab", "train the ORB and LBD bag-of-words vocabularies"),
 }

@@ -43,6 +43,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
     p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
     p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
+    p.add_argument("--record", default="default", choices=("summary", "default", "full"),
+                   help="recording level: summary (the whole-run picture), default (plus full detail on every 100th "
+                   "keyframe and around events: tracking lost, loops, discarded optimisations, large corrections, "
+                   "slow frames), full (every layer on every frame)")
+    p.add_argument("--detail", action="append", default=[], metavar="A:B",
+                   help="full detail on frames A to B-1 whatever the level (repeatable)")
+    p.add_argument("--embed-inputs", default=None, metavar="A:B",
+                   help="embed the raw image and scan of frames A to B-1 (lossless) so that the recording alone "
+                   "reproduces them (plvo reproduce); ~2.5 MB a KITTI frame")
 
 
 def git_revision() -> str:
@@ -73,16 +82,29 @@ def _resolve_config(args: argparse.Namespace) -> SystemConfig:
 
 
 def _open(args: argparse.Namespace):
-    """(dataset, run label): the dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town ("town00")
-    when no dataset is given."""
+    """(dataset, run label, identity): the dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town
+    ("town00") when no dataset is given; identity says where it came from (recorded for plvo reproduce)."""
     from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
+    from plvo_app.run_identity import dataset_identity
 
     frames = parse_frames(args.frames) if args.frames else None
     if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
         root, seq = _synthetic_town()
-        return open_dataset(root, seq, frames), f"town{seq}"
+        dataset = open_dataset(root, seq, frames)
+        return dataset, f"town{seq}", dataset_identity(dataset, root, args.frames, synthetic=True)
     dataset = open_dataset(args.root, args.seq or "00", frames)
-    return dataset, dataset.sequence
+    root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
+    return dataset, dataset.sequence, dataset_identity(dataset, root, args.frames, synthetic=False)
+
+
+def recorder_options(args: argparse.Namespace):
+    """RerunOptions from --record, --detail and --embed-inputs."""
+    from plvo_app.recording_levels import DetailOptions, parse_window
+    from plvo_app.rerun_recorder import RerunOptions
+
+    detail = DetailOptions(level=args.record, windows=tuple(parse_window(w) for w in args.detail))
+    embed = parse_window(args.embed_inputs) if args.embed_inputs else None
+    return RerunOptions(detail=detail, embed_inputs=embed)
 
 
 def _synthetic_town() -> tuple[Path, str]:
@@ -189,9 +211,15 @@ def run(args: argparse.Namespace) -> int:
         return view(args.replay, port=args.port, serve=serve)
     from plvo.system import System
     from plvo_app.rerun_recorder import RerunRecorder
+    from plvo_app.run_identity import input_files
 
     cfg = _resolve_config(args)
-    dataset, label = _open(args)
+    options = recorder_options(args)
+    dataset, label, identity = _open(args)
+    emb = options.embed_inputs
+    if emb is not None and not any(emb[0] <= f < emb[1] for f in dataset.frame_indices):
+        raise DatasetError(f"--embed-inputs {args.embed_inputs}: none of these frames runs (frames "
+                           f"{dataset.frame_indices[0]}..{dataset.frame_indices[-1]})")
     outs = _outputs(args, label)
     made = check_outputs(outs, len(dataset), args.rrd is not None, args.out is not None)
     try:
@@ -203,13 +231,13 @@ def run(args: argparse.Namespace) -> int:
         name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
         gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
         git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
-        extra={"config_toml": config_to_toml(cfg)})
+        extra={"config_toml": config_to_toml(cfg), "dataset": identity, "input_files": input_files(dataset)})
     viewer = None
     status, reason, error, exit_code, fps, at = "failed", "", None, 0, 0.0, [dataset.frame_indices[0]]
     system = System(cfg, FanOut([]))
     recorders = system.recorder.recorders  # filled below, inside the try: a failing recorder is a failed run
     try:
-        recorders.append(RerunRecorder(outs.rrd))
+        recorders.append(RerunRecorder(outs.rrd, options))
         if serve:
             from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
 

@@ -2,15 +2,20 @@
 
 All entity paths are in `ENTITIES`, the one table of what is logged where. Timelines: `frame` (the dataset's frame
 number) and `sensor_time` (seconds). Calibration and ground truth are static. Images are JPEG, scans thinned to a
-fixed budget, the per-keyframe debug layers logged on keyframes only, so that a whole KITTI sequence stays a file a
-person can attach to a bug report. Scalars are buffered and sent as columns every few frames (and on close): one
-`rr.log` costs ~0.2 ms, and a frame has ~30 of them.
+fixed budget, the per-keyframe debug layers logged on keyframes only. Which frames get the detail layers at all is
+the recording level's (plvo_app.recording_levels): every entity of level "summary" is written at full length, those
+of level "detail" on the level's detail frames only (all frames at `--record full`), so that a whole sequence stays
+a file a person can attach to a bug report. Detail that stops is cleared (a Clear at the first frame without it), so
+a viewer never shows a stale image as the current one.
+Scalars and the camera pose are buffered and sent as columns every 200 frames (and on close): one `rr.log` costs
+~0.2 ms, and a frame has ~30 of them.
 """
 
 from __future__ import annotations
 
+import json
 import logging
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -24,10 +29,14 @@ import rerun.blueprint as rrb
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
-from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
-from plvo.results import TrackingResult
+from plvo.results import EDGE_COVISIBILITY, EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult
+from plvo.results import TimingResult, TrackingResult
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
+from plvo_app.recording_levels import DetailOptions, DetailPolicy
+from plvo_app.recording_levels import Lazy as _Lazy
+from plvo_app.recording_levels import WarningCapture as _WarningCapture
 from plvo_app.rrd_sink import RrdFileSink
+from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, encode_inputs, file_sha256, machine
 from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
                                    gt_in_estimate_world, inlier_colors, thin, zeta_colors)
 
@@ -39,13 +48,16 @@ class Entity(NamedTuple):
     archetype: str
     what: str
     when: str  # "static", "frame" (every frame), "keyframe", "back end" (each back-end step), "event"
+    level: str = "detail"  # "summary": at full length in every level; "detail": on the level's detail frames;
+    # "inputs": only in the --embed-inputs window
 
 
 ENTITIES: dict[str, Entity] = {
     e.path: e
     for e in [
-        Entity("world", "ViewCoordinates", "RDF: OpenCV camera convention (x right, y down, z forward)", "static"),
-        Entity("world/camera", "Transform3D", "current estimated camera pose T_world_cam", "frame"),
+        Entity("world", "ViewCoordinates", "RDF: OpenCV camera convention (x right, y down, z forward)", "static",
+               "summary"),
+        Entity("world/camera", "Transform3D", "current estimated camera pose T_world_cam", "frame", "summary"),
         Entity("world/camera/image", "Pinhole (static), EncodedImage", "JPEG image and intrinsics", "frame"),
         Entity("world/camera/image/orb", "Points2D", "all ORB keypoints (grey)", "frame"),
         Entity("world/camera/image/tracked_points", "Points2D",
@@ -65,21 +77,28 @@ ENTITIES: dict[str, Entity] = {
         Entity("world/depth/lines", "LineStrips3D", "fitted 3D lines of the keyframe", "keyframe"),
         Entity("world/depth/planes", "Mesh3D", "fitted patch planes of the keyframe's point priors", "keyframe"),
         Entity("world/map/points", "Points3D", "point landmarks of the local window after bundle adjustment",
-               "back end"),
+               "back end", "summary"),
         Entity("world/map/lines", "LineStrips3D", "line landmarks of the local window after bundle adjustment",
-               "back end"),
-        Entity("world/keyframes", "Points3D", "keyframe positions (refined by the back end)", "keyframe"),
+               "back end", "summary"),
+        Entity("world/keyframes", "Points3D", "keyframe positions (refined by the back end)", "keyframe", "summary"),
         Entity("world/graph", "LineStrips3D", "factor-graph edges: zeta red (0) to green (exp(-2) or more); loops "
-               "magenta", "back end"),
-        Entity("world/loops", "LineStrips3D", "accepted loop edges", "event"),
+               "magenta. The whole graph: each back-end step at the full level and on detail frames, else every "
+               "summary_every_keyframes keyframes and on close (it grows with the run); covisibility edges with "
+               "the detail only", "back end", "summary"),
+        Entity("world/graph/recent", "LineStrips3D", "the edges among the last summary_every_keyframes keyframes, "
+               "each back-end step the whole graph is not written", "back end", "summary"),
+        Entity("world/loops", "LineStrips3D", "accepted loop edges", "event", "summary"),
         Entity("world/trajectory/est", "LineStrips3D", "estimated trajectory, every frame through its keyframe's "
-               "refined pose", "keyframe"),
+               "refined pose", "keyframe", "summary"),
         Entity("world/trajectory/gt", "LineStrips3D", "ground truth (white) in the estimate's world (its first "
-               "frame)", "static"),
+               "frame)", "static", "summary"),
         Entity("metrics", "Scalars", "metrics/time/<stage> ms; metrics/{features,tracking,depth,map,backend,loop}/"
-               "<count>", "frame"),
+               "<count>", "frame", "summary"),
+        Entity(INPUT_IMAGE, "AnyValues png", "the frame's image as PNG (lossless), for plvo reproduce", "frame",
+               "inputs"),
+        Entity(INPUT_SCAN, "AnyValues scan, time", "the scan's float32 bytes and the frame time", "frame", "inputs"),
         Entity("log", "TextLog", "decisions: initialised, keyframe and why, tracking lost and re-initialised, loops "
-               "accepted or rejected and why", "event"),
+               "accepted or rejected and why", "event", "summary"),
     ]
 }
 # Short names used below; every path is a key of ENTITIES (checked at import).
@@ -91,7 +110,7 @@ E = {
     "line_patches": "world/camera/image/line_patches", "planes": "world/depth/planes", "lidar": "world/lidar",
     "scan": "world/lidar/scan", "depth_points": "world/depth/points", "depth_lines": "world/depth/lines",
     "map_points": "world/map/points", "map_lines": "world/map/lines", "keyframes": "world/keyframes",
-    "graph": "world/graph", "loops": "world/loops", "est": "world/trajectory/est", "gt": "world/trajectory/gt",
+    "graph": "world/graph", "graph_recent": "world/graph/recent", "loops": "world/loops", "est": "world/trajectory/est", "gt": "world/trajectory/gt",
 }
 assert set(E.values()) <= set(ENTITIES)
 
@@ -103,7 +122,18 @@ class RerunOptions:
     scan_max_points: int = 4000  # the 3D scan, thinned by stride (a KITTI scan has ~120k)
     overlay_max_points: int = 1500  # the scan projected into the image
     trajectory_max_points: int = 1000
-    scalar_flush_frames: int = 25  # scalars are sent as columns this often (and on close)
+    # Scalars and camera poses are sent as columns this often (and on close): each send is a chunk of each of ~60
+    # series, ~1 kB of schema apiece; every 25 frames that was 2.4 kB a frame, more than the data.
+    scalar_flush_frames: int = 200
+    detail: DetailOptions = DetailOptions()  # the recording level: which frames get the detail entities
+    # Outside detail frames the map at each keyframe is thinned to this (a KITTI window has ~3000 points, 31 kB)
+    map_summary_points: int = 100
+    map_summary_lines: int = 25
+    # Outside detail frames the keyframes and the estimate (they grow with the run) are redrawn this often
+    summary_every_keyframes: int = 20
+    graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
+    embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
+    compact_on_close: bool | None = None  # merge the chunks on close (plvo_app.rrd_compact); None: unless "full"
 
 
 def blueprint() -> rrb.Blueprint:
@@ -144,10 +174,11 @@ class RerunRecorder:
                  stream: rr.RecordingStream | None = None):
         self.path = None if path is None else Path(path)
         self.opt = options or RerunOptions()
-        # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of chunk
-        # headers a frame; close() flushes, so Ctrl-C loses nothing.
+        # Chunks batched over 10 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of
+        # chunk headers a frame (at 2 s a 3000-frame run still had 11,101 chunks); close() flushes, so Ctrl-C loses
+        # nothing.
         self.rec = stream or rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(
-            flush_tick=timedelta(seconds=2), flush_num_bytes=8 << 20))
+            flush_tick=timedelta(seconds=10), flush_num_bytes=4 << 20))
         # Written from Python (plvo_app/rrd_sink.py), not by rec.save: a full disk raises RecordingError at the step
         # it happens, and the file is cut back to its last complete message, still readable.
         self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint())
@@ -165,6 +196,16 @@ class RerunRecorder:
         self._scalars_buf: dict[str, tuple[list[int], list[float], list[float]]] = defaultdict(lambda: ([], [], []))
         self._frames_since_flush = 0
         self._closed = False
+        self._policy = DetailPolicy(self.opt.detail)
+        self._shown: dict[str, str] = {}  # detail entity -> its cadence, written since it was last cleared
+        self._kf_frame = -1  # the frame of the last keyframe
+        self._kfs_since_summary = 0
+        self._kfs_since_graph = 1 << 30  # the first graph is written whole
+        self._last_graph: tuple[int, GraphResult] | None = None  # not yet written whole: written on close
+        self._poses_buf: tuple[list[int], list[float], list[np.ndarray]] = ([], [], [])
+        self._warnings = _WarningCapture()
+        self._input_files: dict[int, tuple[str, str]] = {}
+        self._hashes: dict[int, tuple[str, str]] = {}
 
     # ---- Recorder protocol -------------------------------------------------------------------------------
     def on_run_start(self, info: RunInfo) -> None:
@@ -174,7 +215,15 @@ class RerunRecorder:
             version=info.version, git_revision=info.git_revision, command_line=info.command_line,
             config=info.extra.get("config_toml", repr(info.config)), sequence=info.sequence,
             frames=f"{info.frame_indices[0]}:{info.frame_indices[-1] + 1}" if info.frame_indices else "",
+            record_level=self.opt.detail.level,
         ))
+        ds = info.extra.get("dataset")
+        if ds:  # what plvo reproduce needs to find and check the inputs again
+            rec.send_property("plvo_dataset", rr.AnyValues(**{k: json.dumps(v) if isinstance(v, (dict, list)) else v
+                                                              for k, v in ds.items()}))
+        rec.send_property("plvo_machine", rr.AnyValues(**machine()))
+        self._input_files = dict(info.extra.get("input_files", {}))
+        logging.getLogger("plvo").addHandler(self._warnings)
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
         c = info.calib
         rec.log(E["image"], rr.Pinhole(image_from_camera=c.K, resolution=[c.width, c.height],
@@ -190,12 +239,26 @@ class RerunRecorder:
         self._at = int(frame.index)
         self._times[self._at] = float(frame.time)
         self._set_time(self._at)
+        files = self._input_files.get(self._at)
+        if files is not None:  # the dataset just read them: hashing hits the page cache (~1.6 ms a frame)
+            self._hashes[self._at] = (file_sha256(files[0])[:HASH_HEX], file_sha256(files[1])[:HASH_HEX])
+        emb = self.opt.embed_inputs
+        if emb is not None and emb[0] <= self._at < emb[1]:
+            png, scan = encode_inputs(frame)
+            rec.log(INPUT_IMAGE, rr.AnyValues(png=[png]))
+            rec.log(INPUT_SCAN, rr.AnyValues(scan=[scan], time=[float(frame.time)]))
         shown = frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)  # colour source
-        ok, buf = cv2.imencode(".jpg", shown, [cv2.IMWRITE_JPEG_QUALITY, self.opt.jpeg_quality])
-        if ok:
-            rec.log(E["image"], rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+        if self._policy.want(self._at):  # else the JPEG is made only if an event wants this frame
+            self._log(E["image"], self._jpeg(shown))
+        else:
+            self._policy.defer(self._at, (E["image"], _Lazy(self._jpeg, shown)))
+
+    def _jpeg(self, image: np.ndarray) -> rr.EncodedImage | None:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.opt.jpeg_quality])
+        return rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg") if ok else None
 
     def on_stage(self, frame_index: int, result: Any) -> None:
+        self._drain_warnings()
         # By class name along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult).
         handler = next((_HANDLERS[c.__name__] for c in type(result).__mro__ if c.__name__ in _HANDLERS), None)
         if handler is None:
@@ -227,13 +290,29 @@ class RerunRecorder:
         if self._closed:
             return
         self._closed = True
+        logging.getLogger("plvo").removeHandler(self._warnings)
+        self._drain_warnings()
         self._dirty = True  # the final estimate, with what the workers refined in System.finish()
-        self._log_dirty()
+        self._log_dirty(force=True)
+        if self._last_graph is not None:  # the final graph, whole
+            self._at = self._last_graph[0]
+            self._set_time(self._at)
+            self._log_graph(self._last_graph[1], whole=True)
         self._flush_scalars()
-        if self._sink is not None:
-            self._sink.close()
-        else:
+        if self._hashes:
+            frames = sorted(self._hashes)
+            self.rec.send_property("plvo_inputs", rr.AnyValues(
+                frames=json.dumps(frames), image_sha256=[self._hashes[f][0] for f in frames],
+                scan_sha256=[self._hashes[f][1] for f in frames]))
+        if self._sink is None:
             self.rec.flush()
+            return
+        self._sink.close()  # raises RecordingError on a failed write; the file is then kept as it is
+        compact = self.opt.compact_on_close
+        if compact or (compact is None and not self._policy.everything):
+            from plvo_app.rrd_compact import compact as compact_file
+
+            compact_file(self.path)
 
     # ---- helpers -----------------------------------------------------------------------------------------
     def _scalars(self, prefix: str, values: dict[str, float]) -> None:
@@ -254,15 +333,76 @@ class RerunRecorder:
                                       columns=rr.Scalars.columns(scalars=np.asarray(vals)))
         self._scalars_buf.clear()
         self._frames_since_flush = 0
+        frames, times, poses = self._poses_buf
+        if frames:
+            T = np.asarray(poses)
+            self.rec.send_columns(E["camera"], indexes=[rr.TimeColumn("frame", sequence=frames),
+                                                        rr.TimeColumn("sensor_time", duration=times)],
+                                  columns=rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]))
+        self._poses_buf = ([], [], [])
+
+    # ---- detail: written now, held back for an event, or cleared -----------------------------------------
+    def _log(self, path: str, archetype: Any) -> None:
+        """Write `archetype` to `path` at the current frame, if the recording level wants it there."""
+        if archetype is None:
+            return
+        if ENTITIES[path].level != "detail":
+            self.rec.log(path, archetype)
+        elif self._policy.want(self._at):
+            self.rec.log(path, archetype)
+            self._shown[path] = ENTITIES[path].when
+        else:
+            self._policy.defer(self._at, (path, archetype))
+
+    def _write_held(self, frames: list[int]) -> None:
+        """Frames that became detail (a stride keyframe, an event): write what was held back for them."""
+        held = self._policy.take(frames)
+        for f, (path, archetype) in held:
+            self._set_time(f)
+            archetype = archetype() if isinstance(archetype, _Lazy) else archetype
+            if archetype is not None:
+                self.rec.log(path, archetype)
+                if ENTITIES[path].level == "detail":
+                    self._shown[path] = ENTITIES[path].when
+        if held:
+            self._set_time(self._at)
+
+    def _event(self, why: str) -> None:
+        self._write_held(self._policy.event(self._at, why))
+
+    def _clear_stale(self, frame: int) -> None:
+        """At a frame without detail: clear the per-frame detail shown before (and the per-keyframe detail on a
+        keyframe), so that latest-at does not show an old image as this frame's."""
+        if not self._shown or self._policy.want(frame):
+            return
+        for path, when in list(self._shown.items()):
+            if when == "frame" or frame == self._kf_frame:
+                # the image's entity also holds the static Pinhole, which a Clear may wrongly hide in the viewer
+                # (rerun-io/rerun#11919): empty the image's own components instead
+                self.rec.log(path, rr.EncodedImage.cleared() if path == E["image"] else rr.Clear(recursive=False))
+                del self._shown[path]
+
+    def _drain_warnings(self) -> None:
+        """Warnings of the pipeline (e.g. a discarded optimisation) go to the log and open a detail window."""
+        while self._warnings.records:
+            record = self._warnings.records.popleft()
+            self._text(f"frame {self._at}: {record.name}: {record.getMessage()}", rr.TextLogLevel.WARN)
+            self._event(f"warning {record.name}")
 
     def _text(self, text: str, level: str = rr.TextLogLevel.INFO) -> None:
         self.rec.log("log", rr.TextLog(text, level=level))
 
-    def _log_dirty(self) -> None:
+    def _log_dirty(self, force: bool = False) -> None:
         if not self._dirty:
             return
+        if not (force or self._policy.everything or self._policy.want(self._at)
+                or self._kfs_since_summary >= self.opt.summary_every_keyframes):
+            return
         self._dirty = False
+        self._kfs_since_summary = 0
         kfs = self._trail.keyframe_positions()
+        if not (self._policy.everything or self._policy.want(self._at)):
+            kfs = kfs[thin(len(kfs), self.opt.trajectory_max_points)]
         if len(kfs):
             self.rec.log(E["keyframes"], rr.Points3D(kfs.astype(np.float32), colors=[ORANGE],
                                                      radii=rr.Radius.ui_points(5)))
@@ -273,11 +413,10 @@ class RerunRecorder:
 
     # ---- stage handlers ----------------------------------------------------------------------------------
     def features(self, fs: FeatureSet) -> None:
-        rec = self.rec
         self._features = fs
-        rec.log(E["orb"], rr.Points2D(np.asarray(fs.keypoints, np.float32), colors=[GREY],
-                                      radii=rr.Radius.ui_points(2)))
-        rec.log(E["lsd_merged"], rr.LineStrips2D(_segments_2d(fs.segments), colors=[CYAN],
+        self._log(E["orb"], rr.Points2D(np.asarray(fs.keypoints, np.float32), colors=[GREY],
+                                        radii=rr.Radius.ui_points(2)))
+        self._log(E["lsd_merged"], rr.LineStrips2D(_segments_2d(fs.segments), colors=[CYAN],
                                                  radii=rr.Radius.ui_points(1.5)))
         self._scalars("features", {"points": fs.n_points, "lines": fs.n_lines, "raw_segments": len(fs.raw_segments)})
 
@@ -287,16 +426,19 @@ class RerunRecorder:
     def tracking(self, t: TrackingResult) -> None:
         self._tracking = t
         self._T_world_cam = np.asarray(t.T_world_cam, dtype=float)
-        self.rec.log(E["camera"], _transform(self._T_world_cam))
+        frames, times, poses = self._poses_buf
+        frames.append(self._at)
+        times.append(self._times.get(self._at, 0.0))
+        poses.append(self._T_world_cam)
         self._trail.on_tracking(t.frame_index, self._T_world_cam)
         counts = {"point_matches": t.n_point_matches, "line_matches": t.n_line_matches,
                   "point_inliers": len(t.point_inliers), "line_inliers": len(t.line_inliers), "lost": int(not t.ok)}
         uv = getattr(t, "point_uv", None)  # the tracker's FrontendResult: its 3D-2D matches with their verdicts
         if uv is not None:
             segs = np.asarray(t.line_segments)
-            self.rec.log(E["tracked_points"], rr.Points2D(np.asarray(uv, np.float32), colors=inlier_colors(
+            self._log(E["tracked_points"], rr.Points2D(np.asarray(uv, np.float32), colors=inlier_colors(
                 t.point_inlier), radii=rr.Radius.ui_points(3.5)))
-            self.rec.log(E["tracked_lines"], rr.LineStrips2D(_segments_2d(segs), colors=inlier_colors(
+            self._log(E["tracked_lines"], rr.LineStrips2D(_segments_2d(segs), colors=inlier_colors(
                 t.line_inlier), radii=rr.Radius.ui_points(2.5)))
             counts.update(point_landmarks=len(uv), line_landmarks=len(segs), new_points=t.n_new_points,
                           new_lines=t.n_new_lines)
@@ -304,6 +446,7 @@ class RerunRecorder:
         status = getattr(t, "status", "reinitialised" if not t.ok else "tracked")
         if status == "reinitialised" or not t.ok:
             self._text(t.message or f"frame {t.frame_index}: tracking lost", rr.TextLogLevel.WARN)
+            self._event("tracking lost")
         elif status == "initialised":
             self._text(f"frame {t.frame_index}: initialised from lidar depth ({getattr(t, 'n_new_points', 0)} point "
                        f"and {getattr(t, 'n_new_lines', 0)} line landmarks)")
@@ -317,9 +460,13 @@ class RerunRecorder:
         new = f": {t.n_new_points} new point and {t.n_new_lines} new line landmarks" \
             if t is not None and hasattr(t, "n_new_points") else ""
         self._text(f"frame {kf.frame_index}: keyframe {kf.keyframe_id} ({kf.reason}){new}")
+        self._kf_frame = int(kf.frame_index)
+        self._kfs_since_summary += 1
+        self._kfs_since_graph += 1
+        self._write_held(self._policy.keyframe(self._at))
         fs = self._features
         if fs is not None:  # raw LSD output: on keyframes only (~11 kB a frame otherwise)
-            self.rec.log(E["lsd_raw"], rr.LineStrips2D(_segments_2d(fs.raw_segments), colors=[RED],
+            self._log(E["lsd_raw"], rr.LineStrips2D(_segments_2d(fs.raw_segments), colors=[RED],
                                                        radii=rr.Radius.ui_points(1)))
         self._log_scan()
 
@@ -328,8 +475,8 @@ class RerunRecorder:
         if frame is None or self._T_world_cam is None:
             return
         scan = frame.scan[thin(len(frame.scan), self.opt.scan_max_points), :3]
-        self.rec.log(E["lidar"], _transform(self._T_world_cam @ frame.calib.T_cam_velo))
-        self.rec.log(E["scan"], rr.Points3D(scan.astype(np.float32), colors=depth_colors(np.linalg.norm(scan, axis=1)),
+        self._log(E["lidar"], _transform(self._T_world_cam @ frame.calib.T_cam_velo))
+        self._log(E["scan"], rr.Points3D(scan.astype(np.float32), colors=depth_colors(np.linalg.norm(scan, axis=1)),
                                             radii=rr.Radius.ui_points(1.5)))
         self._overlay_pending = True  # the DepthDebug brings the projected scan; else it is made at the step's end
 
@@ -343,7 +490,7 @@ class RerunRecorder:
 
     def _log_overlay(self, uv: np.ndarray, z: np.ndarray) -> None:
         s = thin(len(uv), self.opt.overlay_max_points)
-        self.rec.log(E["lidar2d"], rr.Points2D(np.asarray(uv)[s].astype(np.float32), colors=depth_colors(z[s]),
+        self._log(E["lidar2d"], rr.Points2D(np.asarray(uv)[s].astype(np.float32), colors=depth_colors(z[s]),
                                                radii=rr.Radius.ui_points(1.5)))
 
     def depth(self, d: DepthPriors) -> None:
@@ -353,14 +500,14 @@ class RerunRecorder:
             return
         T = self._T_world_cam  # the priors are in this keyframe's camera frame; drawn where the camera is
         lines = np.asarray(d.line_endpoints, float)[d.line_valid].reshape(-1, 3)
-        self.rec.log(E["depth_lines"], rr.LineStrips3D(transform_points(T, lines).reshape(-1, 2, 3).astype(
+        self._log(E["depth_lines"], rr.LineStrips3D(transform_points(T, lines).reshape(-1, 2, 3).astype(
             np.float32), colors=[CYAN]))
         fs = self._features
         if fs is not None and len(fs.keypoints) == len(d.point_depth):
             ok = d.point_valid
             pts = transform_points(T, backproject(self._frame.calib.K, np.asarray(fs.keypoints, float)[ok],
                                                   d.point_depth[ok]))
-            self.rec.log(E["depth_points"], rr.Points3D(pts.astype(np.float32), colors=[GREEN],
+            self._log(E["depth_points"], rr.Points3D(pts.astype(np.float32), colors=[GREEN],
                                                         radii=rr.Radius.ui_points(3)))
 
     def depth_debug(self, dbg: Any) -> None:
@@ -370,10 +517,10 @@ class RerunRecorder:
         boxes = np.asarray(dbg.point_boxes, np.float32).reshape(-1, 4)
         valid = self._point_valid if self._point_valid is not None and len(self._point_valid) == len(boxes) \
             else np.zeros(len(boxes), bool)
-        self.rec.log(E["patches"], rr.Boxes2D(mins=boxes[:, :2], sizes=boxes[:, 2:] - boxes[:, :2],
+        self._log(E["patches"], rr.Boxes2D(mins=boxes[:, :2], sizes=boxes[:, 2:] - boxes[:, :2],
                                               colors=inlier_colors(valid)))
         bands = np.asarray(dbg.line_bands, np.float32).reshape(-1, 4, 2)
-        self.rec.log(E["line_patches"], rr.LineStrips2D(np.concatenate([bands, bands[:, :1]], axis=1), colors=[CYAN]))
+        self._log(E["line_patches"], rr.LineStrips2D(np.concatenate([bands, bands[:, :1]], axis=1), colors=[CYAN]))
         self._scalars("time/depth", dict(dbg.timings_ms))
         quads = np.asarray(dbg.plane_quads, float).reshape(-1, 4, 3)
         quads = quads[np.all(np.isfinite(quads), axis=(1, 2))]
@@ -381,27 +528,87 @@ class RerunRecorder:
             verts = transform_points(self._T_world_cam, quads.reshape(-1, 3)).astype(np.float32)
             base = 4 * np.arange(len(quads))[:, None]
             tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.uint32)
-            self.rec.log(E["planes"], rr.Mesh3D(vertex_positions=verts, triangle_indices=tris, albedo_factor=GREEN))
+            self._log(E["planes"], rr.Mesh3D(vertex_positions=verts, triangle_indices=tris, albedo_factor=GREEN))
 
     def graph(self, g: GraphResult) -> None:
         poses = np.asarray(g.T_world_cam, float)
+        before = self._trail.kf_pose
+        moves = [np.linalg.norm(T[:3, 3] - before[int(k)][:3, 3]) for k, T in zip(g.keyframe_ids, poses)
+                 if int(k) in before]
+        if moves and max(moves) > self.opt.detail.large_correction_m:
+            self._text(f"frame {self._at}: the back end moved a keyframe by {max(moves):.2f} m",
+                       rr.TextLogLevel.WARN)
+            self._event("large correction")
         self._trail.on_graph(g.keyframe_ids, poses)  # drawn at the next keyframe (and on close)
-        if len(g.edges):
-            strips = poses[:, :3, 3][np.asarray(g.edges)].astype(np.float32)
-            self.rec.log(E["graph"], rr.LineStrips3D(strips, colors=zeta_colors(g.zeta, g.edge_kind),
-                                                     radii=rr.Radius.ui_points(2.5)))
+        whole = self._policy.everything or self._policy.want(self._at) or \
+            self._kfs_since_graph >= self.opt.summary_every_keyframes
+        self._log_graph(g, whole)
         self._scalars("backend", {"scale": g.scale, "edges": len(g.edges)})
 
+    def _log_graph(self, g: GraphResult, whole: bool) -> None:
+        """The whole graph grows with the run: written whole only now and then (see ENTITIES), else its recent
+        edges, so that a long run's recording grows linearly."""
+        poses = np.asarray(g.T_world_cam, float)
+        self._last_graph = None if whole else (self._at, g)
+        if whole and len(g.edges):
+            self._kfs_since_graph = 0
+        elif len(g.edges):
+            ids = np.asarray(g.keyframe_ids)
+            recent = ids[np.asarray(g.edges)].min(axis=1) > ids.max() - self.opt.summary_every_keyframes
+            kind = np.asarray(g.edge_kind)
+            keep = recent & (kind != EDGE_COVISIBILITY)
+            self.rec.log(E["graph_recent"], rr.LineStrips3D(
+                poses[:, :3, 3][np.asarray(g.edges)[keep]].astype(np.float32),
+                colors=zeta_colors(np.asarray(g.zeta)[keep], kind[keep]), radii=rr.Radius.ui_points(2.5)))
+            return
+        if len(g.edges):
+            kind = np.asarray(g.edge_kind)
+
+            def strips(keep: np.ndarray) -> rr.LineStrips3D:
+                return rr.LineStrips3D(poses[:, :3, 3][np.asarray(g.edges)[keep]].astype(np.float32),
+                                       colors=zeta_colors(np.asarray(g.zeta)[keep], kind[keep]),
+                                       radii=rr.Radius.ui_points(2.5))
+
+            everything = np.ones(len(kind), bool)
+            if self._policy.want(self._at):
+                self.rec.log(E["graph"], strips(everything))
+            else:  # the odometry edges (at most graph_summary_edges, by stride) with their zeta and every loop;
+                # the covisibility edges and the rest with the detail
+                summary = np.zeros(len(kind), bool)
+                odometry = np.flatnonzero(kind != EDGE_COVISIBILITY)
+                summary[odometry[thin(len(odometry), self.opt.graph_summary_edges)]] = True
+                summary |= kind == EDGE_LOOP
+                self.rec.log(E["graph"], strips(summary))
+                if not summary.all():
+                    self._policy.defer(self._at, (E["graph"], strips(everything)))
+
     def map(self, m: MapResult) -> None:
-        self.rec.log(E["map_points"], rr.Points3D(np.asarray(m.points, np.float32), colors=[(150, 150, 160)],
-                                                  radii=rr.Radius.ui_points(2)))
-        self.rec.log(E["map_lines"], rr.LineStrips3D(np.asarray(m.lines, np.float32), colors=[CYAN]))
+        pts, lines = np.asarray(m.points, np.float32), np.asarray(m.lines, np.float32)
+
+        def archetypes(p: np.ndarray, ln: np.ndarray) -> tuple[rr.Points3D, rr.LineStrips3D]:
+            return (rr.Points3D(p, colors=[(150, 150, 160)], radii=rr.Radius.ui_points(2)),
+                    rr.LineStrips3D(ln, colors=[CYAN]))
+
+        full = archetypes(pts, lines)
+        if self._policy.want(self._at):
+            self.rec.log(E["map_points"], full[0])
+            self.rec.log(E["map_lines"], full[1])
+        else:  # the map at every keyframe, thinned; the full snapshot only if an event wants this frame
+            thinned = archetypes(pts[thin(len(pts), self.opt.map_summary_points)],
+                                 lines[thin(len(lines), self.opt.map_summary_lines)])
+            self.rec.log(E["map_points"], thinned[0])
+            self.rec.log(E["map_lines"], thinned[1])
+            self._policy.defer(self._at, (E["map_points"], full[0]))
+            self._policy.defer(self._at, (E["map_lines"], full[1]))
         self._scalars("map", {"points": len(m.points), "lines": len(m.lines)})
 
     def loop(self, lr: LoopResult) -> None:
         verdict = "accepted" if lr.accepted else "rejected"
         self._text(f"loop keyframe {lr.query_keyframe} -> {lr.match_keyframe} {verdict} (score {lr.score:.3f}, "
-                   f"{lr.n_inliers} inliers): {lr.reason}", rr.TextLogLevel.INFO if lr.accepted else rr.TextLogLevel.DEBUG)
+                   f"{lr.n_inliers} inliers): {lr.reason}",
+                   rr.TextLogLevel.INFO if lr.accepted else rr.TextLogLevel.DEBUG)
+        if lr.accepted or lr.n_inliers >= self.opt.detail.loop_min_inliers:  # not each bag-of-words near miss
+            self._event(f"loop {verdict}")
         kf = self._trail.kf_pose
         if lr.accepted and lr.query_keyframe in kf and lr.match_keyframe in kf:
             self._loops.append(np.array([kf[lr.query_keyframe][:3, 3], kf[lr.match_keyframe][:3, 3]], np.float32))
@@ -410,10 +617,17 @@ class RerunRecorder:
     def timing(self, t: TimingResult) -> None:
         """The last result of a step: the keyframes and the estimate are logged here, once a step."""
         self._scalars("time", {name: 1e3 * s for name, s in t.seconds.items()})
+        self._drain_warnings()
+        total = float(t.seconds.get("total", t.total))
+        if self._policy.timing(self._at, total):
+            self._text(f"frame {self._at}: slow frame ({1e3 * total:.0f} ms)", rr.TextLogLevel.WARN)
+            self._event("slow frame")
         if self._overlay_pending and self._frame is not None:
             self._overlay_pending = False
             self._log_scan_overlay(self._frame)
         self._log_dirty()
+        self._clear_stale(self._at)
+        self._policy.end_frame(self._at)
         self._frames_since_flush += 1
         if self._frames_since_flush >= self.opt.scalar_flush_frames:
             self._flush_scalars()
@@ -432,6 +646,8 @@ class RerunRecorder:
         for prefix, values in groups.items():
             self._scalars(prefix, values)
 
+
+HASH_HEX = 24  # sha256 prefix kept a file (96 bits): 2 x 4541 full hashes would be 0.6 MB of a 25 MB budget
 
 _HANDLERS = {
     "FeatureSet": RerunRecorder.features,

@@ -27,13 +27,15 @@ class RrdData:
     temporal: entity -> frame -> component -> value, later rows of a frame overriding earlier ones.
     sensor_time: frame -> seconds. properties: "group:name" -> value, e.g. "plvo:git_revision".
     log: every TextLog row of the `log` entity in logging order, as (frame, level, text): several a frame, which the
-    latest-at view of `temporal` would fold into one."""
+    latest-at view of `temporal` would fold into one.
+    cleared: entity -> frames where a Clear ends its detail (the recording level stopped writing it)."""
 
     static: dict[str, dict[str, Any]] = field(default_factory=dict)
     temporal: dict[str, dict[int, dict[str, Any]]] = field(default_factory=lambda: defaultdict(dict))
     sensor_time: dict[int, float] = field(default_factory=dict)
     properties: dict[str, Any] = field(default_factory=dict)
     log: list[tuple[int, str, str]] = field(default_factory=list)
+    cleared: dict[str, list[int]] = field(default_factory=lambda: defaultdict(list))
 
     def frames(self, entity: str | None = None) -> list[int]:
         """Sorted frame numbers with data (on `entity`, or on any entity)."""
@@ -52,18 +54,19 @@ class RrdData:
         return set(self.static) | set(self.temporal)
 
 
-def read_rrd(path: str | Path) -> RrdData:
-    """Load every chunk of the first recording in `path`."""
+def read_rrd(path: str | Path, content: list[str] | None = None) -> RrdData:
+    """Load every chunk of the first recording in `path` (only the entities matching the `content` filter
+    expressions, e.g. ["/metrics/**", "/log"], when given; the properties always)."""
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording file")
     try:
-        store = _read_store(p)
+        chunks = _read_chunks(p, content)
     except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
-        store = _read_cut_short(p, exc)
+        chunks = _read_cut_short(p, exc, content)
     out = RrdData()
     pending: list[tuple[bytes, str, int, dict[str, Any]]] = []  # (row id, entity, frame, components)
-    for chunk in store.stream():
+    for chunk in chunks:
         batch = chunk.to_record_batch()
         entity = chunk.entity_path
         cols = {name: batch.column(name).to_pylist() for name in batch.schema.names if name not in _SKIP}
@@ -89,6 +92,9 @@ def read_rrd(path: str | Path) -> RrdData:
             if times is not None and times[i] is not None:
                 out.sensor_time[int(f)] = _seconds(times[i])
     for _, entity, f, components in sorted(pending, key=lambda r: r[0]):  # row ids grow with logging order
+        if set(components) == {"Clear:is_recursive"} or (components and all(v == [] for v in components.values())):
+            out.cleared[entity].append(f)
+            continue
         out.temporal[entity].setdefault(f, {}).update(components)
         if entity == "/log" and components.get("TextLog:text"):
             level = components.get("TextLog:level") or ["INFO"]
@@ -96,13 +102,17 @@ def read_rrd(path: str | Path) -> RrdData:
     return out
 
 
-def _read_store(p: Path):
+def _read_chunks(p: Path, content: list[str] | None = None) -> list:
+    """The chunks of the recording (those of the `content` entities and the properties, when given)."""
     with warnings.catch_warnings():  # plvo_app/rrd_sink.py writes no footer: Rerun warns, then scans the whole file
         warnings.filterwarnings("ignore", message="RRD file has no footer")
-        return rr.chunk.RrdReader(p).stream().collect()
+        stream = rr.chunk.RrdReader(p).stream()
+        if content is not None:
+            stream = stream.filter(content=[*content, "/__properties/**"])
+        return list(stream)
 
 
-def _read_cut_short(p: Path, exc: Exception):
+def _read_cut_short(p: Path, exc: Exception, content: list[str] | None = None) -> list:
     """A recording whose last message is cut off (a process killed mid-write): read its complete messages."""
     from plvo_app.rrd_sink import complete_prefix
 
@@ -115,7 +125,7 @@ def _read_cut_short(p: Path, exc: Exception):
             dst.write(src.read(keep))
         log.warning("%s: cut short after %d of %d bytes; reading its complete part", p, keep, size)
         try:
-            return _read_store(copy)
+            return _read_chunks(copy, content)
         except Exception as exc2:  # noqa: BLE001
             raise RecordingError(f"{p}: not a readable Rerun recording ({exc2})") from None
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import defaultdict, deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,7 +50,9 @@ class ViewLimits:
     scan_points: int = 30000
     map_points: int = 60000
     lines: int = 5000
-    trajectory_points: int = 3000
+    # Thick lines cost the browser most: 3000 -> 800 points took a frame change on a 4541-frame replay in headless
+    # Chromium (software GL, a loaded 2-core machine) from ~730 to ~420 ms, the server's share being ~5 ms.
+    trajectory_points: int = 800
     image_width: int = 480
 
 
@@ -72,7 +75,9 @@ class ViserViewer:
         self.server.scene.set_up_direction("-y")
         self.shown_frame: int | None = None  # the dataset frame on screen
         self._lock = threading.RLock()
-        self._handles: dict[str, Any] = {}
+        self._handles: dict[str, Any] = {}  # scene nodes, made once and updated in place
+        self._drawn: dict[str, Any] = {}  # the store value each node shows
+        self._drawn_image: Any = None
         self._camera_placed = False
         self._followed: np.ndarray | None = None  # camera position the browsers' views were last moved with
         self._live = live
@@ -202,71 +207,125 @@ class ViserViewer:
         msg = self.store.latest("log", f) or ""
         return f"**{self.store.name}** frame **{f}** ({position + 1}/{len(self.store.frames)})  \n{msg}"
 
-    def _set(self, key: str, visible: bool, make) -> None:
-        """Replace scene node `key` by make() when visible, else hide it."""
-        handle = self._handles.pop(key, None)
-        if handle is not None:
-            handle.remove()
-        if visible:
+    def _layer(self, key: str, visible: bool, data: Any, make, update) -> None:
+        """Show scene node `key`: made once by make(), then updated in place by update(handle) only when `data`
+        (the store's value, by identity) changed since it was drawn; hidden, not removed, when not visible. A
+        toggle or a frame that shares the layer's value with the last one sends nothing for it."""
+        handle = self._handles.get(key)
+        if not visible or data is None:
+            if handle is not None and handle.visible:
+                handle.visible = False
+            return
+        if handle is None:
             handle = make()
-            if handle is not None:
-                self._handles[key] = handle
+            if handle is None:
+                return
+            self._handles[key] = handle
+        elif self._drawn.get(key) is not data:
+            update(handle)
+        self._drawn[key] = data  # held, so that its id cannot be reused by another value
+        if not handle.visible:
+            handle.visible = True
+
+    def _cloud(self, key: str, name: str, data: Any, pts: np.ndarray | None, colors, visible: bool,
+               point_size: float) -> None:
+        def make():
+            return self.server.scene.add_point_cloud(name, pts, colors, point_size=point_size, precision="float32",
+                                                     point_shape="circle")
+
+        def update(h):
+            h.points = np.asarray(pts, np.float32)
+            h.colors = np.broadcast_to(np.asarray(colors, np.uint8), (len(pts), 3)).copy() \
+                if np.ndim(colors) == 1 else np.asarray(colors, np.uint8)
+
+        self._layer(key, visible and pts is not None and len(pts) > 0, data, make, update)
 
     def _draw(self, f: int) -> None:
         s, lim, on = self.store, self.limits, {k: b.value for k, b in self.toggles.items()}
-        scene = self.server.scene
         scan = s.latest("scan", f)
-        self._set("scan", on["scan"] and scan is not None, lambda: scene.add_point_cloud(
-            "/scan", scan[0][thin(len(scan[0]), lim.scan_points)], scan[1][thin(len(scan[0]), lim.scan_points)],
-            point_size=0.05, precision="float32", point_shape="circle"))
+        cut = None if scan is None else thin(len(scan[0]), lim.scan_points)
+        self._cloud("scan", "/scan", scan, None if scan is None else scan[0][cut],
+                    None if scan is None else scan[1][cut], on["scan"], 0.05)
         pts = s.latest("map_points", f)
-        self._set("map_points", on["map_points"] and pts is not None and len(pts), lambda: scene.add_point_cloud(
-            "/map/points", pts[thin(len(pts), lim.map_points)], (70, 70, 90), point_size=0.1, precision="float32",
-            point_shape="circle"))
-        self._segments("map_lines", "/map/lines", s.latest("map_lines", f), on["map_lines"], (40, 200, 230))
+        self._cloud("map_points", "/map/points", pts, None if pts is None else pts[thin(len(pts), lim.map_points)],
+                    (70, 70, 90), on["map_points"], 0.1)
+        lines = s.latest("map_lines", f)
+        self._segments("map_lines", "/map/lines", lines, lines, on["map_lines"], (40, 200, 230))
         graph = s.latest("graph", f)
-        self._segments("graph", "/graph", None if graph is None else graph[0], on["graph"],
+        self._segments("graph", "/graph", graph, None if graph is None else graph[0], on["graph"],
                        None if graph is None else np.repeat(graph[1][:, None], 2, axis=1), 0.08)
         kfs = s.latest("keyframes", f)
-        self._set("keyframes", on["graph"] and kfs is not None and len(kfs), lambda: scene.add_point_cloud(
-            "/keyframes", np.asarray(kfs, np.float32), ORANGE, point_size=0.4, precision="float32", point_shape="circle"))
-        self._segments("loops", "/loops", s.latest("loops", f), on["loops"], (255, 0, 255), 0.15)
+        self._cloud("keyframes", "/keyframes", kfs, None if kfs is None else np.asarray(kfs, np.float32), ORANGE,
+                    on["graph"], 0.4)
+        loops = s.latest("loops", f)
+        self._segments("loops", "/loops", loops, loops, on["loops"], (255, 0, 255), 0.15)
         self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 0.08)
         self._polyline("est", "/trajectory/est", s.latest("est", f), on["est"], GREEN)
         self._camera(f, on["camera"])
 
-    def _segments(self, key: str, name: str, segs: np.ndarray | None, visible: bool, color, width: float = 0.05):
+    def _segments(self, key: str, name: str, data: Any, segs: np.ndarray | None, visible: bool, color,
+                  width: float = 0.05) -> None:
         ok = visible and segs is not None and len(segs) > 0
-        if ok and np.ndim(color) == 3:  # per-segment colours, thinned with their segments
-            color = np.asarray(color, np.uint8)[thin(len(segs), self.limits.lines)]
-        self._set(key, ok, lambda: self.server.scene.add_line_segments(
-            name, np.asarray(segs, np.float32)[thin(len(segs), self.limits.lines)], color, thickness=width))
+        if not ok:
+            self._layer(key, False, data, None, None)
+            return
+        cut = thin(len(segs), self.limits.lines)
+        segs = np.asarray(segs, np.float32)[cut]
+        color = np.asarray(color, np.uint8)[cut] if np.ndim(color) == 3 else color  # per segment: thinned along
+
+        def make():
+            return self.server.scene.add_line_segments(name, segs, color, thickness=width)
+
+        def update(h):
+            h.points = segs
+            h.colors = np.asarray(color, np.uint8) if np.ndim(color) == 3 else \
+                np.broadcast_to(np.asarray(color, np.uint8), (len(segs), 2, 3)).copy()
+
+        self._layer(key, True, data, make, update)
 
     def _polyline(self, key: str, name: str, pts: np.ndarray | None, visible: bool, color,
                   width: float = 0.15) -> None:
         if pts is None or len(pts) < 2:
-            self._set(key, False, lambda: None)
+            self._layer(key, False, None, None, None)
+            return
+        if self._drawn.get(key) is pts and key in self._handles:  # same trajectory: nothing to make or send
+            self._layer(key, visible, pts, None, None)
             return
         p = np.asarray(pts, np.float32)
         p = np.vstack([p[thin(len(p), self.limits.trajectory_points)], p[-1:]])
-        self._segments(key, name, np.stack([p[:-1], p[1:]], axis=1), visible, color, width)
+        self._segments(key, name, pts, np.stack([p[:-1], p[1:]], axis=1), visible, color, width)
 
     def _camera(self, f: int, visible: bool) -> None:
         s = self.store
         T = s.latest("pose", f)
         if T is None or s.K is None:
-            self._set("camera", False, lambda: None)
+            self._layer("camera", False, None, None, None)
             return
         jpeg = s.latest("image", f)
-        image = None
-        if jpeg is not None:
-            image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR_RGB)
-            image = cv2.resize(image, (self.limits.image_width, round(image.shape[0] * self.limits.image_width
-                                                                       / image.shape[1])))
+
+        def image():
+            if jpeg is None:
+                return None
+            img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR_RGB)
+            return cv2.resize(img, (self.limits.image_width, round(img.shape[0] * self.limits.image_width
+                                                                   / img.shape[1])))
+
         fov = 2 * np.arctan2(s.height / 2, s.K[1, 1])
-        self._set("camera", visible, lambda: self.server.scene.add_camera_frustum(
-            "/camera", fov=float(fov), aspect=s.width / s.height, scale=self.frustum_scale, image=image,
-            format="jpeg", color=(40, 220, 60), wxyz=vtf.SO3.from_matrix(T[:3, :3]).wxyz, position=T[:3, 3]))
+        wxyz = vtf.SO3.from_matrix(T[:3, :3]).wxyz
+
+        def make():
+            self._drawn_image = jpeg
+            return self.server.scene.add_camera_frustum(
+                "/camera", fov=float(fov), aspect=s.width / s.height, scale=self.frustum_scale, image=image(),
+                format="jpeg", color=(40, 220, 60), wxyz=wxyz, position=T[:3, 3])
+
+        def update(h):
+            h.wxyz, h.position = wxyz, T[:3, 3]
+            if self._drawn_image is not jpeg:  # the same JPEG (a frame without its own image): not re-sent
+                h.image = image()
+                self._drawn_image = jpeg
+
+        self._layer("camera", visible, T, make, update)
 
     def close(self) -> None:
         self._stop.set()
@@ -276,10 +335,11 @@ class ViserViewer:
 class ViserRecorder:
     """A Recorder feeding a live ViserViewer: converts stage results into SceneStore layers as they come.
 
-    The estimate is put on keyframes (and back-end refinements) only, thinned: a copy a frame would grow the store
-    quadratically over a whole sequence."""
+    Memory stays bounded over a whole sequence: the estimate and the keyframes are views of one EstimateTrail (not a
+    copy a keyframe, which grew quadratically), and of the images, scans and maps only the last `keep` are kept
+    whole (older images and scans are dropped, older maps thinned tenfold)."""
 
-    def __init__(self, viewer: ViserViewer, min_interval_s: float = 0.1):
+    def __init__(self, viewer: ViserViewer, min_interval_s: float = 0.1, keep: int = 300):
         self.viewer = viewer
         self.store = viewer.store
         self.min_interval_s = min_interval_s
@@ -288,6 +348,21 @@ class ViserRecorder:
         self._trail = EstimateTrail()
         self._loops: list[np.ndarray] = []
         self._last_refresh = 0.0
+        self.keep = keep
+        self._heavy: dict[str, deque[int]] = defaultdict(deque)  # layer -> frames holding a whole value
+
+    def _put_heavy(self, layer: str, frame_index: int, value: Any) -> None:
+        s = self.store
+        s.put(layer, frame_index, value)
+        frames = self._heavy[layer]
+        frames.append(frame_index)
+        while len(frames) > self.keep:
+            old = frames.popleft()
+            if layer in ("map_points", "map_lines"):
+                v = s.value_at(layer, old)
+                s.replace(layer, old, None if v is None else v[::10])
+            else:
+                s.replace(layer, old, None)
 
     def on_run_start(self, info: RunInfo) -> None:
         s = self.store
@@ -299,7 +374,7 @@ class ViserRecorder:
     def on_frame(self, frame: Frame) -> None:
         self._frame = frame
         shown = frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR)  # colour source
-        self.store.put("image", frame.index, _jpeg_small(shown, 2 * self.viewer.limits.image_width))
+        self._put_heavy("image", frame.index, _jpeg_small(shown, 2 * self.viewer.limits.image_width))
 
     def on_stage(self, frame_index: int, result: Any) -> None:
         known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult", "TimingResult")
@@ -315,8 +390,8 @@ class ViserRecorder:
         elif name == "KeyframeResult":
             self._keyframe(frame_index, result)
         elif name == "MapResult":
-            s.put("map_points", frame_index, np.asarray(result.points, np.float32))
-            s.put("map_lines", frame_index, np.asarray(result.lines, np.float32))
+            self._put_heavy("map_points", frame_index, np.asarray(result.points, np.float32))
+            self._put_heavy("map_lines", frame_index, np.asarray(result.lines, np.float32))
         elif name == "GraphResult":
             poses = np.asarray(result.T_world_cam, float)
             self._trail.on_graph(result.keyframe_ids, poses)
@@ -342,10 +417,9 @@ class ViserRecorder:
 
     def _put_estimate(self, frame_index: int) -> None:
         s = self.store
-        s.put("keyframes", frame_index, self._trail.keyframe_positions().astype(np.float32))
-        est = self._trail.positions().astype(np.float32)
-        if len(est):
-            s.put("est", frame_index, np.vstack([est[thin(len(est), self.viewer.limits.trajectory_points)], est[-1:]]))
+        s.put("keyframes", frame_index, TrailView(self._trail, len(self._trail.kf_pose), keyframes=True))
+        if self._trail.frames:
+            s.put("est", frame_index, TrailView(self._trail, len(self._trail.frames)))
 
     def _keyframe(self, frame_index: int, kf: Any) -> None:
         pose = np.asarray(kf.T_world_cam if kf.T_world_cam is not None else self._pose, float)
@@ -358,10 +432,25 @@ class ViserRecorder:
         scan = frame.scan[thin(len(frame.scan), self.viewer.limits.scan_points), :3].astype(np.float64)
         T = pose @ frame.calib.T_cam_velo
         world = (scan @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-        self.store.put("scan", frame_index, (world, depth_colors(np.linalg.norm(scan, axis=1))))
+        self._put_heavy("scan", frame_index, (world, depth_colors(np.linalg.norm(scan, axis=1))))
 
     def close(self) -> None:
         self.viewer.refresh()
+
+
+class TrailView:
+    """The first n positions of an EstimateTrail (frames, or keyframes by id) as the trail stands when drawn: a
+    few bytes in the store instead of a copy of the trajectory."""
+
+    def __init__(self, trail: EstimateTrail, n: int, keyframes: bool = False):
+        self.trail, self.n, self.keyframes = trail, n, keyframes
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        p = self.trail.cached_keyframe_positions() if self.keyframes else self.trail.cached_positions()
+        return np.asarray(p[:self.n], dtype or np.float32)
 
 
 def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:

@@ -121,3 +121,53 @@ def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1) -> None:
     recorder.on_stage(kfs[-1], GraphResult(kfs[-1], np.arange(k + 1), np.array([pose(f) for f in kfs]),
                                            np.array([[k, 0]]), np.array([EDGE_LOOP]), np.array([np.nan])))
     assert last >= kfs[-1]
+
+
+def long_pose(i: int) -> np.ndarray:
+    return exp(np.array([0.0, 0.0, 1.0 * i, 0.0, 0.002 * i, 0.0]))
+
+
+def write_long_recording(path, n: int = 4541, every: int = 3) -> None:
+    """A whole-sequence recording with the entities and cadence plvo-viz writes (a pose and a small image every
+    frame, a scan, map and graph every `every` frames, the estimate every 20 keyframes), made in seconds by
+    logging directly rather than by running anything."""
+    import cv2
+    import rerun as rr
+
+    from plvo_app.rerun_recorder import blueprint
+
+    rng = np.random.default_rng(1)
+    rec = rr.RecordingStream("plvo", recording_id="long")
+    rec.save(path, default_blueprint=blueprint())
+    rec.send_property("plvo", rr.AnyValues(sequence="long"))
+    rec.log("world", rr.ViewCoordinates.RDF, static=True)
+    rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, resolution=[1200, 360]), static=True)
+    poses = np.array([long_pose(i) for i in range(n)])
+    rec.log("world/trajectory/gt", rr.LineStrips3D([poses[:, :3, 3].astype(np.float32)]), static=True)
+    frames = list(range(n))
+    rec.send_columns("world/camera", indexes=[rr.TimeColumn("frame", sequence=frames)],
+                     columns=rr.Transform3D.columns(translation=poses[:, :3, 3], mat3x3=poses[:, :3, :3]))
+    base = (rng.random((90, 300)) * 255).astype(np.uint8)
+    jpegs = []
+    for i in range(n):
+        img = base.copy()
+        cv2.putText(img, str(i), (10, 60), cv2.FONT_HERSHEY_SIMPLEX, 2, 255, 3)
+        jpegs.append(cv2.imencode(".jpg", img)[1].tobytes())
+    rec.send_columns("world/camera/image", indexes=[rr.TimeColumn("frame", sequence=frames)],
+                     columns=rr.EncodedImage.columns(blob=jpegs, media_type=["image/jpeg"] * n))
+    for i in range(0, n, every):
+        rec.set_time("frame", sequence=i)
+        if True:
+            k = i // every
+            rec.log("world/lidar", rr.Transform3D(translation=poses[i][:3, 3], mat3x3=poses[i][:3, :3]))
+            rec.log("world/lidar/scan", rr.Points3D(rng.uniform(-30, 30, (1000, 3)).astype(np.float32)))
+            rec.log("world/map/points", rr.Points3D((poses[i][:3, 3] + rng.uniform(-20, 20, (800, 3)))
+                                                    .astype(np.float32)))
+            kf = poses[max(0, i - 10 * every):i + 1:every, :3, 3].astype(np.float32)
+            rec.log("world/graph", rr.LineStrips3D(np.stack([kf[:-1], kf[1:]], 1) if len(kf) > 1 else []))
+            rec.log("log", rr.TextLog(f"frame {i}: keyframe {k} (interval)"))
+            if k % 20 == 0:
+                rec.log("world/trajectory/est", rr.LineStrips3D([poses[:i + 1, :3, 3].astype(np.float32)]))
+                rec.log("world/keyframes", rr.Points3D(poses[:i + 1:every, :3, 3].astype(np.float32)))
+    rec.flush()
+    rec.disconnect()

@@ -11,7 +11,8 @@ from app_fakes import CALIB, LOST_FRAME, drive, keyframe_frames, pose
 from plvo.geometry.se3 import exp, inv
 from plvo.recording import RunInfo
 from plvo.types import Calibration
-from plvo_app.rerun_recorder import ENTITIES, RerunRecorder
+from plvo_app.recording_levels import DetailOptions
+from plvo_app.rerun_recorder import ENTITIES, RerunOptions, RerunRecorder
 from plvo_app.rrd_reader import read_rrd
 from plvo_app.scene_common import GREEN, MAGENTA, RED, EstimateTrail, gt_in_estimate_world
 from plvo_app.viser_viewer import SceneStore, load_rrd
@@ -23,7 +24,7 @@ KFS = keyframe_frames(N)  # [0, 3, 4, 6]: every 3 frames and the re-initialisati
 @pytest.fixture(scope="module")
 def rrd(tmp_path_factory):
     path = tmp_path_factory.mktemp("rec") / "fake.rrd"
-    rec = RerunRecorder(path)
+    rec = RerunRecorder(path, RerunOptions(detail=DetailOptions(level="full")))
     drive(rec, N, backend_lag=1)
     rec.set_status("complete", N)
     rec.close()

@@ -113,8 +113,11 @@ def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay
     moved = _until(lambda: _scene_pixels(page, tmp_path / "moved.png"), lambda img: _changed(img, first) > 0.005)
     assert _changed(moved, first) > 0.005
 
+    handles = dict(v._handles)
     page.get_by_role("checkbox", name="scan").uncheck()
-    assert _wait(lambda: not v.toggles["scan"].value and "scan" not in v._handles)
+    assert _wait(lambda: not v.toggles["scan"].value and not v._handles["scan"].visible)
+    # a toggle hides one node; the others are the same nodes, not removed and re-sent
+    assert all(v._handles[k] is h for k, h in handles.items())
 
     page.get_by_role("button", name="Play").click()
     assert _wait(lambda: v.playing and v.shown_frame != 6, timeout=10), "play did not move the frame"
@@ -137,5 +140,78 @@ def test_live_recorder_follows_the_run():
         assert pts.dtype == np.float32  # float16 would quantise KITTI-scale positions
         viewer.slider.value = 2  # the user goes back: following stops
         assert viewer.shown_frame == 2 and not viewer.follow.value
+    finally:
+        viewer.close()
+
+
+def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
+    """A 4541-frame replay (a whole KITTI 00's length) opens from its index, and a frame change reaches the page.
+    Measured: the server's share (slider update to scene sent) and the time from a key press on the slider to the
+    new frame's status in the page. The issue asks 100 ms on screen; in headless Chromium the browser renders
+    in software, so the page bound below only catches a viewer that decodes or re-sends a whole run per frame."""
+    from app_fakes import long_pose, write_long_recording
+
+    path = tmp_path_factory.mktemp("long") / "long.rrd"
+    write_long_recording(path, 4541, every=6)
+    t0 = time.perf_counter()
+    store = load_rrd(path)
+    opened_s = time.perf_counter() - t0
+    assert len(store.frames) == 4541 and len(store._cache) == 0  # nothing decoded before it is shown
+    v = ViserViewer(store, port=_free_port())
+    server_s: list[float] = []
+    show = v.show
+
+    def timed_show(*args, **kwargs):
+        t = time.perf_counter()
+        show(*args, **kwargs)
+        server_s.append(time.perf_counter() - t)
+
+    v.show = timed_show
+    try:
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{v.port}")
+        page.get_by_text("Connected").wait_for(timeout=30000)
+        v.slider.value = 3000
+        page.get_by_text("(3001/4541)").wait_for(timeout=20000)
+        page.get_by_role("slider").first.focus()
+        server_s.clear()
+        times = []
+        for step in range(1, 13):  # frame by frame: a new image and pose each time, a new scan every 6
+            t0 = time.perf_counter()
+            page.keyboard.press("ArrowRight")
+            page.wait_for_function(f"document.body.innerText.includes('({3001 + step}/4541)')", polling=10,
+                                   timeout=10000)
+            times.append(time.perf_counter() - t0)
+        assert v.shown_frame == 3012
+        np.testing.assert_allclose(v._handles["camera"].position, long_pose(3012)[:3, 3], atol=1e-2)
+        page_ms, server_ms = 1e3 * np.median(times), 1e3 * np.median(server_s)
+        print(f"\nlong replay: opened in {opened_s:.2f} s; frame change: server {server_ms:.1f} ms, on the page "
+              f"{page_ms:.0f} ms (median of {len(times)}, max {1e3 * max(times):.0f} ms)")
+        assert server_ms < 100, server_s
+        assert page_ms < 1500, times
+        page.close()
+    finally:
+        v.close()
+
+
+def test_live_store_stays_bounded():
+    """Over a long live run only the last `keep` images and scans are kept whole, older maps thinned, and the
+    estimate is a view of one trail rather than a copy a keyframe."""
+    from plvo_app.viser_viewer import TrailView
+
+    viewer = ViserViewer(SceneStore(), port=_free_port(), live=True)
+    try:
+        rec = ViserRecorder(viewer, min_interval_s=1e9, keep=2)
+        drive(rec, N)
+        s = viewer.store
+        images = [s.value_at("image", f) for f in range(N)]
+        assert sum(v is not None for v in images) == 2 and images[-1] is not None
+        scans = [v for v in s.layers["scan"][1] if v is not None]
+        assert len(scans) == 2 and s.count("scan") == 4  # every keyframe still has its entry
+        maps = s.layers["map_points"][1]
+        assert [len(m) for m in maps] == [20, 40, 600, 800]  # the fake's 200 a keyframe; older ones tenfold fewer
+        est = s.layers["est"][1]
+        assert all(isinstance(e, TrailView) for e in est)
+        np.testing.assert_allclose(np.asarray(est[-1])[-1], pose(N - 1)[:3, 3], atol=1e-5)
     finally:
         viewer.close()

@@ -44,7 +44,7 @@ def _outputs(cwd: Path, stderr: str) -> tuple[Path, Path]:
 @pytest.fixture(scope="module")
 def kitti_run(kitti_root, tmp_path_factory):
     cwd = tmp_path_factory.mktemp("viz")
-    proc = viz(["--root", str(kitti_root), "--seq", "04", "--frames", "3:10", "--no-serve"], cwd)
+    proc = viz(["--root", str(kitti_root), "--seq", "04", "--frames", "3:10", "--no-serve", "--record", "full"], cwd)
     assert proc.returncode == 0, proc.stderr
     rrd, out = _outputs(cwd, proc.stderr)
     return cwd, proc, rrd, out
@@ -152,7 +152,8 @@ def test_ctrl_c_keeps_a_readable_recording(kitti_root, tmp_path):
     data = read_rrd(tmp_path / "cut.rrd")
     done = data.properties["plvo_run:frames_done"]
     assert data.properties["plvo_run:status"] == "interrupted" and 3 <= done < 51
-    assert data.frames("/world/camera/image")[:3] == [0, 1, 2]
+    assert data.frames("/world/camera") == list(range(done))  # the poses, sent as columns, flushed on close
+    assert data.frames("/world/camera/image")[0] == 0  # the default level's detail on the first keyframe
     assert data.frames("/metrics/time/total") == list(range(done))  # the buffered scalars were flushed on close
     timings = json.loads((tmp_path / "out" / "timings.json").read_text())
     assert timings["status"] == "interrupted" and timings["frames_done"] == done
@@ -212,7 +213,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
         return synth_seq
 
     monkeypatch.setattr("plvo.data.synth.default_sequence_root", fake_generate)
-    dataset, label = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
+    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
     err = capsys.readouterr().err
     assert calls and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5
     assert "no --root and no $KITTI_ROOT: running the synthetic town" in err and "generated once" in err
@@ -224,7 +225,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
     key = cache.settings_hash(DEFAULT_SETTINGS, DEFAULT_SEQUENCE)
     (tmp_path / "cache" / "synth").mkdir(parents=True)
     (tmp_path / "cache" / "synth" / key).symlink_to(synth_seq, target_is_directory=True)
-    dataset, label = cmd_viz._open(parser.parse_args(["--frames", "0:20"]))
+    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:20"]))
     err = capsys.readouterr().err
     assert len(dataset) == 20 and dataset.gt_T_world_cam is not None and "cached in" in err
 

@@ -1,0 +1,87 @@
+"""Cut a recording down to a window of frames, for an attachment: `plvo clip FILE.rrd --frames A:B --out OUT.rrd`.
+
+Static data (calibration, ground truth, the recording's properties) is kept, with a `plvo_clip` property saying
+what was cut. Each entity's last row before A (the map, the trajectory, the graph as they stood) is carried to
+frame A, so the window opens on the scene as it was rather than an empty one; time series and the log are cut
+without carry. The chunks are compacted as `rerun rrd optimize` would (Rerun's live profile).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import rerun as rr
+
+from plvo.errors import RecordingError
+from plvo_app.recording_levels import parse_window
+from plvo_app.rrd_compact import write_chunks
+
+NO_CARRY = ("/metrics", "/log", "/inputs")  # a value of these belongs to its frame, not to the frames after it
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", type=Path, metavar="FILE.rrd", help="a recording written by plvo-viz")
+    p.add_argument("--frames", required=True, metavar="A:B", help="keep frames A to B-1")
+    p.add_argument("--out", type=Path, required=True, metavar="OUT.rrd", help="the clipped recording (new file)")
+
+
+def _frame_range(batch: pa.RecordBatch) -> pa.Array | None:
+    return batch.column("frame") if "frame" in batch.schema.names else None
+
+
+def clip(src: Path, a: int, b: int, out: Path) -> int:
+    """Write frames [a, b) of `src` (and its static data) to `out`; returns the number of rows kept."""
+    if not src.is_file():
+        raise RecordingError(f"{src}: no such recording file")
+    if out.exists():
+        raise RecordingError(f"{out}: already exists; plvo clip never overwrites a file")
+    try:
+        chunks = list(rr.chunk.RrdReader(src).stream())
+    except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
+        raise RecordingError(f"{src}: not a readable Rerun recording ({exc})") from None
+    # the last row before `a` of each entity that carries over: (frame, chunk index, row)
+    last: dict[str, tuple[int, int, int]] = {}
+    for ci, chunk in enumerate(chunks):
+        if chunk.is_static or chunk.entity_path.startswith(NO_CARRY):
+            continue
+        frames = _frame_range(chunk.to_record_batch())
+        if frames is None:
+            continue
+        for row, f in enumerate(frames.to_pylist()):
+            if f is not None and f < a and f >= last.get(chunk.entity_path, (-1, 0, 0))[0]:
+                last[chunk.entity_path] = (f, ci, row)
+    carry = {(ci, row) for _, ci, row in last.values()}
+    kept: list[rr.chunk.Chunk] = []
+    n_rows = 0
+    for ci, chunk in enumerate(chunks):
+        batch = chunk.to_record_batch()
+        frames = _frame_range(batch)
+        if chunk.is_static or frames is None:
+            kept.append(chunk)
+            continue
+        inside = pc.and_(pc.greater_equal(frames, a), pc.less(frames, b))
+        rows = [r for r, ok in enumerate(inside.to_pylist()) if ok or (ci, r) in carry]
+        if not rows:
+            continue
+        sub = batch.take(pa.array(rows))
+        i = sub.schema.get_field_index("frame")
+        moved = pa.array([max(int(f), a) for f in sub.column(i).to_pylist()], type=sub.schema.field(i).type)
+        sub = sub.set_column(i, sub.schema.field(i), moved)
+        kept += rr.chunk.Chunk.from_record_batch(sub)  # keeps the row ids: their order settles same-frame rows
+        n_rows += len(rows)
+    kept.append(rr.chunk.Chunk.from_property("plvo_clip", rr.AnyValues(source=str(src), frames=f"{a}:{b}")))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_chunks(out, kept, recording_id=f"{src.stem}_{a}_{b}")
+    return n_rows
+
+
+def run(args: argparse.Namespace) -> int:
+    a, b = parse_window(args.frames)
+    n = clip(args.file, a, b, args.out)
+    print(f"{args.out}: frames {a}..{b - 1} of {args.file} ({n} rows, {args.out.stat().st_size / 1e6:.1f} MB)",
+          file=sys.stderr)
+    return 0

@@ -1,0 +1,210 @@
+"""Recording levels: which frames of a run get full detail in the .rrd, and how many bytes a frame each level costs.
+
+Every level keeps the whole-run picture at full length (camera pose, keyframes, graph with zeta, loops, timings and
+counts, the decision log, the map at keyframes, thinned). Detail (the image with every overlay, raw and merged
+segments, the projected scan and patches, planes, fitted lines, the scan, full map snapshots) is kept:
+
+- summary: only in the windows the user names (`--detail A:B`);
+- default: also on every `keyframe_stride`-th keyframe and in windows around events: tracking lost or
+  re-initialised, a loop accepted or rejected after geometric verification, a discarded optimisation (a warning
+  of the pipeline), a large correction of a keyframe by the back end, a slow frame (at most `max_event_windows`
+  windows, `max_windows_per_kind` of each kind: the detail of a long run is bounded, the summary grows with it);
+- full: on every frame (as before levels existed).
+
+An event is known only once it happened, so the detail of the last `before` frames is held back in memory and
+written when an event wants it (else dropped): a window reaches `before` frames back and `after` frames forward.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import tempfile
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from plvo.errors import RecordingError
+
+log = logging.getLogger(__name__)
+
+LEVELS = ("summary", "default", "full")
+LATE_FRAMES = 16  # the back end and loop closer hand a keyframe's results back within this many frames
+
+
+@dataclass(frozen=True)
+class DetailOptions:
+    level: str = "default"
+    windows: tuple[tuple[int, int], ...] = ()  # the user's --detail A:B windows (B exclusive), frame numbers
+    keyframe_stride: int = 100  # default level: full detail on keyframes 0, 100, 200...
+    before: int = 3  # frames of detail before an event
+    after: int = 3  # and after it
+    max_event_windows: int = 10  # events past this many windows are still in the log, without detail...
+    max_windows_per_kind: int = 3  # ...and past this many of one kind, so near-miss loops leave room for a loss
+    loop_min_inliers: int = 10  # a rejected loop candidate is an event once it got this far in verification
+    slow_factor: float = 4.0  # a frame slower than this x the running median is an event...
+    slow_min_frames: int = 30  # ...once this many frames give the median
+    large_correction_m: float = 2.0  # a back-end step moving a keyframe further than this is an event
+
+    def __post_init__(self) -> None:
+        if self.level not in LEVELS:
+            raise RecordingError(f"recording level {self.level!r}: choose one of {', '.join(LEVELS)}")
+
+
+def parse_window(text: str) -> tuple[int, int]:
+    """'A:B' -> (A, B), B exclusive; a PlvoError naming the text otherwise."""
+    parts = text.strip().split(":")
+    try:
+        a, b = (int(p) for p in parts)
+    except ValueError:
+        raise RecordingError(f"window {text!r}: expected A:B with frame numbers A < B, e.g. 1200:1300") from None
+    if a < 0 or b <= a:
+        raise RecordingError(f"window {text!r}: expected A:B with frame numbers 0 <= A < B")
+    return a, b
+
+
+class DetailPolicy:
+    """Decides, frame by frame, whether detail is written; holds back the detail of the last frames.
+
+    The recorder calls `want(frame)` before writing a detail entity: True writes it now, False hands it to
+    `defer(frame, item)`. `keyframe`, `event` and `slow` open windows; `end_frame` drops what no event can still
+    want. `take(frames)` returns the held-back items of frames that became detail (the recorder writes them).
+    """
+
+    def __init__(self, opt: DetailOptions):
+        self.opt = opt
+        self._open: list[tuple[int, int]] = list(opt.windows)  # [a, b) windows of detail
+        self._held: dict[int, list[Any]] = {}
+        self._order: deque[int] = deque()
+        self._n_keyframes = 0
+        self._totals: deque[float] = deque(maxlen=200)
+        self.n_event_windows = 0
+        self._per_kind: dict[str, int] = {}
+        self.events: list[tuple[int, str]] = []  # (frame, why) of every event, whether it got detail or not
+
+    @property
+    def everything(self) -> bool:
+        return self.opt.level == "full"
+
+    def want(self, frame: int) -> bool:
+        return self.everything or any(a <= frame < b for a, b in self._open)
+
+    def defer(self, frame: int, item: Any) -> None:
+        if frame not in self._held:
+            self._held[frame] = []
+            self._order.append(frame)
+        self._held[frame].append(item)
+
+    def keyframe(self, frame: int) -> list[int]:
+        """A keyframe was made at `frame`; the frames that became detail (to flush)."""
+        n, self._n_keyframes = self._n_keyframes, self._n_keyframes + 1
+        if self.opt.level == "default" and self.opt.keyframe_stride > 0 and n % self.opt.keyframe_stride == 0:
+            return self._open_window(frame, frame + 1)
+        return []
+
+    def event(self, frame: int, why: str) -> list[int]:
+        """Something a bug report is about happened at `frame`; the frames that became detail (to flush)."""
+        self.events.append((frame, why))
+        if self.opt.level != "default" or self.want(frame):
+            return []
+        if self.n_event_windows >= self.opt.max_event_windows or \
+                self._per_kind.get(why, 0) >= self.opt.max_windows_per_kind:
+            return []
+        self.n_event_windows += 1
+        self._per_kind[why] = self._per_kind.get(why, 0) + 1
+        return self._open_window(frame - self.opt.before, frame + self.opt.after + 1)
+
+    def timing(self, frame: int, total_s: float) -> bool:
+        """The step of `frame` took `total_s`: True when that makes it a slow frame."""
+        slow = (len(self._totals) >= self.opt.slow_min_frames
+                and total_s > self.opt.slow_factor * statistics.median(self._totals))
+        self._totals.append(total_s)
+        return slow
+
+    def take(self, frames: list[int]) -> list[tuple[int, Any]]:
+        out = []
+        for f in frames:
+            out += [(f, item) for item in self._held.pop(f, [])]
+        return out
+
+    def end_frame(self, frame: int) -> None:
+        """`frame` is done: forget held-back detail older than `before` frames."""
+        while self._order and self._order[0] <= frame - self.opt.before:
+            self._held.pop(self._order.popleft(), None)
+        # a window stays known a while after it ends: the back end's results for its frames arrive late
+        self._open = [(a, b) for a, b in self._open if b > frame - LATE_FRAMES]
+
+    def _open_window(self, a: int, b: int) -> list[int]:
+        self._open.append((a, b))
+        return sorted(f for f in self._held if a <= f < b)
+
+
+class Lazy:
+    """Detail held back that is costly to make (the JPEG): made only if an event wants its frame."""
+
+    def __init__(self, fn, *args):
+        self.fn, self.args = fn, args
+
+    def __call__(self):
+        return self.fn(*self.args)
+
+
+class WarningCapture(logging.Handler):
+    """Collects the pipeline's warnings (from any thread); the recorder drains them from the tracking thread."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: deque[logging.LogRecord] = deque()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def measure_levels(dataset, config, frames: int | None = None, out_dir: str | Path | None = None,
+                   levels: tuple[str, ...] = LEVELS, keep: bool = False) -> dict[str, dict[str, float]]:
+    """Run `dataset` (its first `frames` frames) once, recorded at every level side by side; per level the bytes
+    of the .rrd and bytes a frame (and what a 4541-frame run would weigh at that rate: a linear extrapolation).
+    keep=True keeps the recordings in `out_dir` (<level>.rrd) instead of a temporary folder.
+
+    For `plvo bench`: e.g. `report["recording_levels"] = measure_levels(dataset, cfg, 300)`.
+    """
+    from plvo.recording import FanOut, RunInfo
+    from plvo.system import System
+    from plvo_app.rerun_recorder import RerunOptions, RerunRecorder
+
+    n = len(dataset) if frames is None else min(int(frames), len(dataset))
+    with tempfile.TemporaryDirectory(prefix="plvo-levels-", dir=out_dir) as tmp:
+        if keep:
+            tmp = str(Path(out_dir or "."))
+        paths = {lv: Path(tmp) / f"{lv}.rrd" for lv in levels}
+        recorders = [RerunRecorder(paths[lv], RerunOptions(detail=DetailOptions(level=lv))) for lv in levels]
+        system = System(config, FanOut(recorders))
+        info = RunInfo(name="measure_levels", sequence=dataset.sequence, calib=dataset.calib,
+                       frame_indices=tuple(dataset.frame_indices[:n]),
+                       gt_T_world_cam=None if dataset.gt_T_world_cam is None else dataset.gt_T_world_cam[:n],
+                       config={}, version="", git_revision="", command_line="measure_levels")
+        system.start(info)
+        try:
+            for i in range(n):
+                system.step(dataset[i])
+            system.finish()
+        finally:
+            system.close()
+        out = {}
+        n_kf = recorders[0]._policy._n_keyframes if recorders else 0
+        for lv, rec in zip(levels, recorders):
+            size = paths[lv].stat().st_size
+            out[lv] = {"frames": n, "bytes": size, "bytes_per_frame": size / max(n, 1),
+                       "mb_per_4541_frames": size / max(n, 1) * 4541 / 1e6, "path": str(paths[lv]) if keep else "",
+                       "keyframes": n_kf, "events": len(rec._policy.events),
+                       "event_windows": rec._policy.n_event_windows}
+        if {"summary", "default", "full"} <= set(out) and n_kf:
+            # The default's event detail is bounded (it does not grow with frames); its stride keyframes grow, each
+            # costing about a keyframe's share of the full level's detail.
+            s, d, f = (out[lv]["bytes"] for lv in ("summary", "default", "full"))
+            stride = DetailOptions().keyframe_stride
+            more = max(0, math.ceil(n_kf * 4541 / n / stride) - math.ceil(n_kf / stride))
+            out["default"]["mb_4541_estimate"] = (s / n * 4541 + (d - s) + more * (f - s) / n_kf) / 1e6
+    return out

@@ -1,0 +1,110 @@
+"""plvo reproduce and plvo clip on a short synthetic run recorded by plvo-viz (back end inline, so the run is
+deterministic): the rerun reproduces from the dataset and from the inputs embedded in the recording alone; one
+config value changed gives a departure (frame and stage); a changed input file is named; clip keeps only the
+window and its static data."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from plvo.errors import RecordingError
+from plvo_app.cli import main_viz
+from plvo_app.cmd_clip import clip
+from plvo_app.reproduce import reproduce
+from plvo_app.rrd_reader import read_rrd
+
+N = 8
+
+
+@pytest.fixture(scope="module")
+def run(synth_sequence_factory, tmp_path_factory):
+    root = synth_sequence_factory(12, seed=0)
+    tmp = tmp_path_factory.mktemp("repro")
+    cfg = tmp / "det.toml"
+    cfg.write_text("[backend]\nconcurrent = false\n")
+    rrd = tmp / "run.rrd"
+    code = main_viz(["--root", str(root), "--seq", "00", "--frames", f"0:{N}", "--config", str(cfg), "--no-serve",
+                     "--rrd", str(rrd), "--out", str(tmp / "out"), "--embed-inputs", f"0:{N}"])
+    assert code == 0
+    return root, rrd
+
+
+def test_recording_names_its_inputs_and_machine(run):
+    root, rrd = run
+    props = read_rrd(rrd, content=["/log"]).properties
+    assert props["plvo_dataset:sequence"] == "00" and props["plvo_dataset:layout"] == "kitti_odometry"
+    assert props["plvo_dataset:frames"] == str(list(range(N)))
+    assert len(props["plvo_inputs:scan_sha256"]) == N and props["plvo_machine:cpus"]
+    assert "concurrent = false" in props["plvo:config"]
+
+
+def test_reproduces_from_the_dataset(run):
+    root, rrd = run
+    report = reproduce(rrd, root)
+    assert report.reproduces, report.lines(0.01, 0.1)
+    assert report.frames == list(range(N)) and report.max_diff[0] < 1e-6
+    assert f"inputs: all {2 * N} files match the recorded hashes" in report.notes
+
+
+def test_one_config_value_changed_departs_with_frame_and_stage(run):
+    root, rrd = run
+    report = reproduce(rrd, root, {"orb.n_features": 600})
+    assert not report.reproduces
+    assert report.stage_frame == 0 and report.stage.startswith("features/points 1000 -> 600"), report.stage
+    assert report.pose_frame is not None and report.pose_diff[0] > 0.01
+    text = "\n".join(report.lines(0.01, 0.1))
+    assert f"departs at frame {report.pose_frame}" in text and "first changed stage result: frame 0" in text
+
+
+def test_reproduces_from_the_recording_alone(run):
+    _, rrd = run
+    report = reproduce(rrd)  # no root: the embedded PNG and scan bytes
+    assert report.source == "the inputs embedded in the recording"
+    assert report.reproduces, report.lines(0.01, 0.1)
+
+
+def test_a_changed_input_file_is_named(run, tmp_path):
+    root, rrd = run
+    copy = tmp_path / "root"
+    shutil.copytree(root, copy)
+    scan = copy / "sequences" / "00" / "velodyne" / "000005.bin"
+    pts = np.fromfile(scan, np.float32)
+    pts[0] += 1.0
+    pts.tofile(scan)
+    report = reproduce(rrd, copy)
+    assert report.notes[0] == f"frame 5: scan file {scan} differs from the one recorded"
+
+
+def test_clip_keeps_only_the_window_and_static_data(run, tmp_path):
+    _, rrd = run
+    out = tmp_path / "clip.rrd"
+    clip(rrd, 4, 7, out)
+    data, whole = read_rrd(out), read_rrd(rrd)
+    assert set(data.frames()) == {4, 5, 6}
+    assert data.frames("/world/camera") == [4, 5, 6] and data.frames("/metrics/features/points") == [4, 5, 6]
+    assert {"/world", "/world/camera/image"} <= set(data.static)  # calibration kept
+    assert data.properties["plvo_clip:frames"] == "4:7" and data.properties["plvo_dataset:sequence"] == "00"
+    # the map as it stood at frame 4 (made at an earlier keyframe) is carried to the window's first frame
+    before = max(f for f in whole.frames("/world/map/points") if f < 4)
+    assert 4 not in whole.frames("/world/map/points") and data.frames("/world/map/points")[0] == 4
+    assert data.temporal["/world/map/points"][4] == whole.temporal["/world/map/points"][before]
+    with pytest.raises(RecordingError, match="already exists"):
+        clip(rrd, 4, 7, out)
+
+
+def test_not_a_recording_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "bad.rrd"
+    bad.write_bytes(b"nope")
+    with pytest.raises(RecordingError, match="bad.rrd"):
+        reproduce(bad)
+
+
+def test_a_clip_reproduces_with_its_dataset(run, tmp_path):
+    root, rrd = run
+    out = tmp_path / "clip.rrd"
+    clip(rrd, 3, 7, out)
+    report = reproduce(out, root)  # the whole run again, compared on the clip's frames
+    assert report.reproduces, report.lines(0.01, 0.1)
