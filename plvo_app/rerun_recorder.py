@@ -174,11 +174,12 @@ class RerunRecorder:
                  stream: rr.RecordingStream | None = None):
         self.path = None if path is None else Path(path)
         self.opt = options or RerunOptions()
-        # Chunks batched over 10 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of
-        # chunk headers a frame (at 2 s a 3000-frame run still had 11,101 chunks); close() flushes, so Ctrl-C loses
-        # nothing.
+        # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of
+        # chunk headers a frame. Not longer: the batcher's tick is also how late a failed write (a full disk) is
+        # seen; the summary and default levels are compacted on close (rrd_compact), which merges the chunks
+        # anyway. close() flushes, so Ctrl-C loses nothing.
         self.rec = stream or rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(
-            flush_tick=timedelta(seconds=10), flush_num_bytes=4 << 20))
+            flush_tick=timedelta(seconds=2), flush_num_bytes=4 << 20))
         # Written from Python (plvo_app/rrd_sink.py), not by rec.save: a full disk raises RecordingError at the step
         # it happens, and the file is cut back to its last complete message, still readable.
         self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint())

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import rerun as rr
 
 from plvo.errors import RecordingError
+from plvo_app.rrd_reader import read_chunks
 
 _TIMES = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
 CLEAR = "Clear:is_recursive"
@@ -35,10 +35,7 @@ class RrdIndex:
         p = Path(path)
         if not p.is_file():
             raise RecordingError(f"{p}: no such recording file")
-        try:
-            chunks = list(rr.chunk.RrdReader(p).stream())
-        except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
-            raise RecordingError(f"{p}: not a readable Rerun recording ({exc})") from None
+        chunks = read_chunks(p)  # a file cut short gives its complete part
         self.static: dict[str, dict[str, Any]] = {}
         self.properties: dict[str, Any] = {}
         self.batches: list[pa.RecordBatch] = []

@@ -60,10 +60,7 @@ def read_rrd(path: str | Path, content: list[str] | None = None) -> RrdData:
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording file")
-    try:
-        chunks = _read_chunks(p, content)
-    except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
-        chunks = _read_cut_short(p, exc, content)
+    chunks = read_chunks(p, content)
     out = RrdData()
     pending: list[tuple[bytes, str, int, dict[str, Any]]] = []  # (row id, entity, frame, components)
     for chunk in chunks:
@@ -100,6 +97,16 @@ def read_rrd(path: str | Path, content: list[str] | None = None) -> RrdData:
             level = components.get("TextLog:level") or ["INFO"]
             out.log.append((f, str(level[0]), str(components["TextLog:text"][0])))
     return out
+
+
+def read_chunks(path: str | Path, content: list[str] | None = None) -> list:
+    """The chunks of a recording (of the `content` entities and the properties, when given); a file cut short
+    mid-message (a process killed while writing) gives its complete part, with a warning."""
+    p = Path(path)
+    try:
+        return _read_chunks(p, content)
+    except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
+        return _read_cut_short(p, exc, content)
 
 
 def _read_chunks(p: Path, content: list[str] | None = None) -> list:

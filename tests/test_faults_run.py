@@ -151,8 +151,8 @@ def _fill(disk: Path) -> None:
 def test_disk_full_during_the_run(synth_seq, tmpfs, tmp_path):
     """A real full disk: another process fills the tmpfs under the recording while the run goes."""
     row = fault("disk-full")
-    cmd = ["--root", str(synth_seq), "--seq", "00", "--frames", "0:15", "--no-serve", "--rrd",
-           str(tmpfs / "run.rrd"), "--out", "out"]
+    cmd = ["--root", str(synth_seq), "--seq", "00", "--frames", "0:15", "--no-serve", "--record", "full", "--rrd",
+           str(tmpfs / "run.rrd"), "--out", "out"]  # full: every frame's image, so the file fills the disk early
     p = subprocess.Popen(VIZ + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE, text=True)
     t0 = time.time()  # frames are on disk (the stream is written every 2 s): then the disk fills up
     while not ((tmpfs / "run.rrd").is_file() and (tmpfs / "run.rrd").stat().st_size > 200_000) \
@@ -186,7 +186,8 @@ def test_failed_recording_write_stops_the_run(town, tmp_path, capsys, monkeypatc
         real(self, chunk, ends)
 
     monkeypatch.setattr(rrd_sink.RrdFileSink, "_write", failing)
-    status, err = _viz([*town, "--frames", "0:20", "--rrd", "run.rrd", "--out", "out"], capsys)
+    # full: every frame's image, so that 200 kB are written within the first frames
+    status, err = _viz([*town, "--frames", "0:20", "--record", "full", "--rrd", "run.rrd", "--out", "out"], capsys)
     line = one_error_line(err)
     assert status == row.exit and row.message in line and "Input/output error" in line
     timings = _timings(tmp_path / "out")
