@@ -280,7 +280,8 @@ class System:
             self.map.apply(c)
             self.corrections.append(self._correction_event(c, before, out))
         if out.rejected:
-            self.loop_stats["global_ba_rejected"] += 1
+            key = "global_ba_superseded" if out.rejected.startswith("superseded") else "global_ba_rejected"
+            self.loop_stats[key] = self.loop_stats.get(key, 0) + 1
         results = list(out.results)
         if c is not None and c.source == LOOP:
             self.loop_stats["corrections"] += 1

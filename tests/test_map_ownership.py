@@ -168,3 +168,16 @@ def test_concurrent_result_does_not_depend_on_worker_timing(synth_sequence_facto
         assert np.abs(other[:, :3, 3] - in_process[:, :3, 3]).max() < 1e-6
     # Inline (lag 0) is another fixed order of work: close to the concurrent one, not equal.
     assert np.abs(inline[:, :3, 3] - in_process[:, :3, 3]).max() > 0
+
+
+def test_a_global_ba_read_before_a_later_loop_correction_is_skipped():
+    """Loop jobs queued before a global BA job run first; when one of them closed another loop, the BA's data
+    (read from the map before that correction) is stale: it is skipped, and the System submits a fresh one."""
+    from plvo.loop.worker import GlobalBAJob, LoopCore
+
+    m = _street(4)
+    core = object.__new__(LoopCore)  # only the bookkeeping is exercised: no vocabulary, no calibration
+    core._made = [MapCorrection(LOOP, np.arange(4), m.poses(), m.poses()),
+                  MapCorrection(LOOP, np.arange(4), m.poses(), m.poses())]
+    out = core.process(GlobalBAJob(30, m.global_data(), 1.0, corrections_applied=1))
+    assert out.correction is None and out.rejected.startswith("superseded")

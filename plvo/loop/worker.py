@@ -133,7 +133,13 @@ class LoopCore:
         """Bundle-adjust all keyframes and the points two of them see -> a correction (or why it was rejected)."""
         t0 = time.perf_counter()
         d = job.data
-        poses = self._estimate(np.asarray(d.T_world_cam, float), job.corrections_applied)
+        if len(self._made) > job.corrections_applied:
+            # A later loop was closed after this job's data was read (the loop jobs queued before it ran first):
+            # its landmarks lack that correction, and the System submits another global BA once it is applied.
+            log.info("global BA after the loop at frame %d skipped: a later loop correction supersedes it",
+                     job.frame_index)
+            return LoopOutput(job.frame_index, None, rejected="superseded by a later loop correction")
+        poses = np.asarray(d.T_world_cam, float)
         ids = np.asarray(d.kf_ids, np.int64)
         if not len(d.landmark):
             return LoopOutput(job.frame_index, None, timings={"loop_global_ba": time.perf_counter() - t0})
