@@ -2,8 +2,9 @@
 
 With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
 $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
-results/<seq>_<time>/ with poses.txt (KITTI format, cam0, first frame at identity; written only when the run
-completed), config.toml (the resolved config) and timings.json.
+results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
+timestamps under --format tum; written only when the run completed), config.toml (the resolved config) and
+timings.json. --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
 Ctrl-C or SIGTERM stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json
 likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half its frames is marked
 "failed" with its reason and says so on one line. The faults and what each leaves: docs/faults.md.
@@ -23,6 +24,7 @@ from pathlib import Path
 from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
 from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
+from plvo_app.source_args import add_source_arguments, source_options
 from plvo_app.guards import Terminated, check_port, deferred_signals, exit_status_of
 from plvo_app.run_outputs import (MIN_TRACKED_SHARE, Outputs, RunLog, check_outputs, remove_made, tracked_summary,
                                   write_json)
@@ -31,8 +33,9 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout); default $KITTI_ROOT, "
-                   "else the embedded synthetic town")
+    p.add_argument("--root", type=Path, help="dataset root (KITTI odometry or raw layout), a ROS bag (.bag, ROS 2 "
+                   "folder, .mcap) or a plain images/ + scans/ folder; default $KITTI_ROOT, else the embedded "
+                   "synthetic town")
     p.add_argument("--seq", default=None, help="odometry sequence (04) or raw drive (2011_09_26_drive_0009); "
                    "default 00 with a root")
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
@@ -43,6 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
     p.add_argument("--port", type=int, default=8080, help="viser port on 127.0.0.1 (default 8080)")
     p.add_argument("--replay", type=Path, metavar="FILE.rrd", help="show a saved recording instead of running")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
+                   help="poses.txt format: kitti (12 numbers a line) or tum (time tx ty tz qx qy qz qw, the data's "
+                        "timestamps); default kitti")
+    add_source_arguments(p)
     p.add_argument("--record", default="default", choices=("summary", "default", "full"),
                    help="recording level: summary (the whole-run picture), default (plus full detail on every 100th "
                    "keyframe and around events: tracking lost, loops, discarded optimisations, large corrections, "
@@ -92,7 +99,7 @@ def _open(args: argparse.Namespace):
         root, seq = _synthetic_town()
         dataset = open_dataset(root, seq, frames)
         return dataset, f"town{seq}", dataset_identity(dataset, root, args.frames, synthetic=True)
-    dataset = open_dataset(args.root, args.seq or "00", frames)
+    dataset = open_dataset(args.root, args.seq or "00", frames, camera=args.camera, options=source_options(args))
     root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
     return dataset, dataset.sequence, dataset_identity(dataset, root, args.frames, synthetic=False)
 
@@ -162,11 +169,11 @@ def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict
             "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
 
 
-def _write_poses(out: Path, system, dataset) -> None:
-    from plvo.data.trajectory import write_kitti_poses
+def _write_poses(out: Path, system, dataset, fmt: str = "kitti") -> None:
+    from plvo.data.trajectory import write_poses
 
     try:
-        write_kitti_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices))
+        write_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices), dataset.times, fmt)
     except OSError as exc:
         raise RunFailed(f"{out / 'poses.txt'}: cannot write the results ({exc.strerror or exc})") from None
 
@@ -267,7 +274,8 @@ def run(args: argparse.Namespace) -> int:
         if status == "interrupted":
             print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({reason}); keeping what was "
                   "recorded", file=sys.stderr)
-        status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog)
+        status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog,
+                                        args.format)
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
         if error is None and status == "complete":
             tracked, share = tracked_summary(system.frames_done, system.n_lost)
@@ -286,7 +294,7 @@ def run(args: argparse.Namespace) -> int:
     return exit_code
 
 
-def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog):
+def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog, fmt="kitti"):
     """Write the poses, stamp and close the recording, then write timings.json with the status as it ends up:
     (status, reason, error). poses.txt comes first, so that neither the recording nor timings.json says
     "complete" for a run whose poses could not be written."""
@@ -297,7 +305,7 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
             error = RunFailed(f"{reason}: results marked failed, no poses.txt")
     if status == "complete" and error is None:
         try:
-            _write_poses(outs.out, system, dataset)
+            _write_poses(outs.out, system, dataset, fmt)
         except PlvoError as exc:
             error, reason = exc, str(exc)
     if error is not None:

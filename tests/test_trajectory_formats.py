@@ -10,7 +10,6 @@ import pytest
 
 from evo.tools import file_interface  # the test extras' evo: an independent reader of both formats
 
-from plvo.config import SystemConfig
 from plvo.data.trajectory import write_poses
 from plvo.errors import TrajectoryError
 from plvo.geometry import se3
@@ -66,7 +65,7 @@ def test_viz_format_option(tmp_path, fmt):
     cmd_viz.add_arguments(parser)
     args = parser.parse_args(["--format", fmt])
     poses = _poses(4)
-    cmd_viz._write_results(tmp_path, _System(poses), SystemConfig(), "complete", 10.0, _Dataset(), args.format)
+    cmd_viz._write_poses(tmp_path, _System(poses), _Dataset(), args.format)
     path = str(tmp_path / "poses.txt")
     if fmt == "tum":
         traj = file_interface.read_tum_trajectory_file(path)

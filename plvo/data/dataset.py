@@ -53,6 +53,37 @@ class Dataset(Protocol):
         ...
 
 
+class SelectedFrames:
+    """What every dataset class shares: the selection (`_frames`, the dataset's frame numbers), their times
+    (`_times`, (len,)) and ground truth (`_gt`, (len,4,4) or None), set by the subclass."""
+
+    _frames: tuple[int, ...]
+    _times: np.ndarray
+    _gt: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def _position(self, i: int) -> int:
+        """Position i (negatives from the end) -> 0..len-1; IndexError outside."""
+        n = len(self._frames)
+        if not -n <= i < n:
+            raise IndexError(f"position {i} out of range for {n} frames")
+        return i % n
+
+    @property
+    def gt_T_world_cam(self) -> np.ndarray | None:
+        return None if self._gt is None else self._gt.copy()
+
+    @property
+    def frame_indices(self) -> tuple[int, ...]:
+        return self._frames
+
+    @property
+    def times(self) -> np.ndarray:
+        return self._times.copy()
+
+
 def iter_frames(dataset: Dataset) -> Iterator[Frame]:
     """Frames of a dataset in order, read one at a time."""
     for i in range(len(dataset)):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from plvo.data.calib_yaml import read_calib_yaml
-from plvo.data.dataset import FrameSelection, SourceOptions, select_frames
+from plvo.data.dataset import FrameSelection, SelectedFrames, SourceOptions, select_frames
 from plvo.data.images import read_image_file, split_gray_color
 from plvo.data.pointcloud import read_scan_file
 from plvo.data.trajectory import read_kitti_poses, read_tum
@@ -87,7 +87,7 @@ def _read_gt(path: Path, times: np.ndarray, have_times: bool) -> np.ndarray:
     return se3.inv(poses[0]) @ poses
 
 
-class FolderDataset:
+class FolderDataset(SelectedFrames):
     """images/ + scans/ + calib.yaml (+ times.txt, poses.txt) as a Dataset."""
 
     name = "folder"
@@ -124,14 +124,9 @@ class FolderDataset:
         log.info("folder %s: %d frames, %dx%d%s", self.root, len(sel), self.calib.width, self.calib.height,
                  ", with ground truth" if gt is not None else "")
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def __getitem__(self, i: int) -> Frame:
-        n = len(self._frames)
-        if not -n <= i < n:
-            raise IndexError(f"position {i} out of range for {n} frames")
-        k = self._frames[i % n]
+        i = self._position(i)
+        k = self._frames[i]
         raw = read_image_file(self._images[k], k)
         if raw.shape[:2] != (self.calib.height, self.calib.width):
             raise DatasetError(f"{self._images[k]}: image is {raw.shape[1]}x{raw.shape[0]}, the calibration's "
@@ -139,18 +134,6 @@ class FolderDataset:
         if self._rectify is not None:
             raw = self._rectify(raw)
         gray, color = split_gray_color(raw)
-        return Frame(index=k, time=float(self._times[i % n]), image=gray, scan=read_scan_file(self._scans[k], k),
-                     calib=self.calib, gt_T_world_cam=None if self._gt is None else self._gt[i % n].copy(),
+        return Frame(index=k, time=float(self._times[i]), image=gray, scan=read_scan_file(self._scans[k], k),
+                     calib=self.calib, gt_T_world_cam=None if self._gt is None else self._gt[i].copy(),
                      color=color)
-
-    @property
-    def gt_T_world_cam(self) -> np.ndarray | None:
-        return None if self._gt is None else self._gt.copy()
-
-    @property
-    def frame_indices(self) -> tuple[int, ...]:
-        return self._frames
-
-    @property
-    def times(self) -> np.ndarray:
-        return self._times.copy()

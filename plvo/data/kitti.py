@@ -21,7 +21,7 @@ import pykitti
 import pykitti.utils as kitti_utils
 from PIL import Image, UnidentifiedImageError
 
-from plvo.data.dataset import FrameSelection, select_frames
+from plvo.data.dataset import FrameSelection, SelectedFrames, select_frames
 from plvo.data.images import split_gray_color
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import CalibrationError, DatasetError, TrajectoryError
@@ -156,7 +156,7 @@ def _calibration(calib, camera: int, width: int, height: int, elevation_offset_d
     )
 
 
-class _KittiSequence:
+class _KittiSequence(SelectedFrames):
     """Shared lazy reading of a selected range of KITTI frames (image + scan files per frame number)."""
 
     name: str
@@ -185,15 +185,9 @@ class _KittiSequence:
         log.info("%s %s: %d frames (%d..%d), %dx%d", self.name, sequence, len(frames), frames[0], frames[-1],
                  calib.width, calib.height)
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def __getitem__(self, i: int) -> Frame:
         """Frame at position i (0..len-1) of the selection; Frame.index is the dataset's frame number."""
-        n = len(self._frames)
-        if not -n <= i < n:
-            raise IndexError(f"position {i} out of range for {n} frames")
-        i %= n
+        i = self._position(i)
         gt = None if self._gt is None else self._gt[i].copy()
         gray, color = self._load_image(i)
         return Frame(
@@ -205,18 +199,6 @@ class _KittiSequence:
             gt_T_world_cam=gt,
             color=color,
         )
-
-    @property
-    def gt_T_world_cam(self) -> np.ndarray | None:
-        return None if self._gt is None else self._gt.copy()
-
-    @property
-    def frame_indices(self) -> tuple[int, ...]:
-        return self._frames
-
-    @property
-    def times(self) -> np.ndarray:
-        return self._times.copy()
 
     def _load_image(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(grey (H,W), RGB (H,W,3) for the colour cameras 2 and 3 else None)."""

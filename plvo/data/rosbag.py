@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from plvo.data.calib_yaml import read_calib_yaml
-from plvo.data.dataset import FrameSelection, SourceOptions, select_frames
+from plvo.data.dataset import FrameSelection, SelectedFrames, SourceOptions, select_frames
 from plvo.data.images import split_gray_color
 from plvo.data.ros_messages import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, TF_TYPE, StaticTransforms, camera_model,
                                     cloud_scan, image_array, stamp_ns)
@@ -101,10 +101,11 @@ def pair_nearest(image_ns: np.ndarray, scan_ns: np.ndarray, max_dt_ns: int) -> t
     return nearest, np.abs(scan_ns[nearest] - image_ns) <= max_dt_ns
 
 
-class RosbagDataset:
+class RosbagDataset(SelectedFrames):
     """A ROS 1 / ROS 2 bag as a Dataset: paired image + scan frames, no ground truth."""
 
     name = "rosbag"
+    _gt = None  # a bag carries no ground truth
 
     def __init__(self, path: str | Path, frames: FrameSelection = None, options: SourceOptions | None = None) -> None:
         self.path = Path(path)
@@ -241,14 +242,8 @@ class RosbagDataset:
                 return reader.deserialize(raw, conn.msgtype)
         raise DatasetError(f"{self.path}: {topic} message at {ref.bag_ns * 1e-9:.6f} s vanished from the bag")
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
     def __getitem__(self, i: int) -> Frame:
-        n = len(self._frames)
-        if not -n <= i < n:
-            raise IndexError(f"position {i} out of range for {n} frames")
-        k = self._frames[i % n]
+        k = self._frames[self._position(i)]
         image_ref, scan_ref = self._pairs[k]
         where = f"{self.path} {self.image_topic} at stamp {image_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
         raw = image_array(self._message(self.image_topic, image_ref), self._image_type, where)
@@ -262,17 +257,5 @@ class RosbagDataset:
         scan, scan_time = cloud_scan(self._message(self.cloud_topic, scan_ref), cloud_where)
         return Frame(index=k, time=1e-9 * image_ref.stamp_ns, image=gray, scan=scan, calib=self.calib,
                      gt_T_world_cam=None, color=color, scan_time=scan_time)
-
-    @property
-    def gt_T_world_cam(self) -> np.ndarray | None:
-        return None
-
-    @property
-    def frame_indices(self) -> tuple[int, ...]:
-        return self._frames
-
-    @property
-    def times(self) -> np.ndarray:
-        return self._times.copy()
 
 
