@@ -155,6 +155,11 @@ def run(args: argparse.Namespace) -> int:
         return _soak(args, cfg, dataset, info, machine, command)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
         report = run_bench(dataset, cfg, stages, args.repeat, _rerun_factory(Path(tmp)), info)
+    if "system" in stages:
+        from plvo_app.recording_levels import measure_levels
+
+        log.info("bench: one more run, recorded at every level side by side (bytes a frame per level)")
+        report["recording_levels"] = measure_levels(dataset, cfg, len(dataset))
     machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
     options = {k: str(v) if isinstance(v, Path) else v for k, v in sorted(vars(args).items())}
     head = {"schema": report["schema"], "created_utc": report["created_utc"], "command_line": command,
@@ -232,6 +237,10 @@ def format_table(report: dict) -> str:
         kiss = "-" if dep["kiss_icp_fps"] is None else f"{dep['kiss_icp_fps']:.2f}"
         lines.append(f"deployed (as plvo-viz: from disk, recording on): {dep['fps']:.2f} frames/s; KISS-ICP on the "
                      f"same scans: {kiss} frames/s")
+    levels = report.get("recording_levels")
+    if levels:
+        lines.append("recording, bytes a frame: " + ", ".join(
+            f"{lv} {v.get('bytes_per_frame', 0):,.0f}" for lv, v in levels.items()))
     mem = report["memory"]
     lines.append(f"peak memory: {mem['ru_maxrss_mb']:.0f} MB (ru_maxrss), {mem['sampled_peak_mb']:.0f} MB sampled; "
                  f"bench took {report['duration_s']:.0f} s")

@@ -102,6 +102,17 @@ def test_whole_system_with_and_without_recording(synth_seq, tmp_path):
     assert "features" not in r["stages"]  # isolated stages were not asked for
     assert {"tracking", "total", "features"} <= set(sysr["stages_recording_off"])
     assert r["memory"]["system_recording_on"]["peak_mb"] > 100
+    # What a user gets from plvo-viz (from disk, recording on), with KISS-ICP on the same scans beside it
+    dep = r["deployed"]
+    assert dep["runs"][0]["frames"] == 6 and dep["runs"][0]["recording"] and dep["runs"][0]["rrd_bytes"] > 10_000
+    assert dep["fps"] == pytest.approx(6 / dep["runs"][0]["wall_s"], rel=1e-2)
+    if dep["kiss_icp_fps"] is not None:  # kiss-icp is in the compare extra that make test installs
+        assert dep["kiss_icp_fps"] > 0 and dep["at_least_kiss_icp"] == (dep["fps"] >= dep["kiss_icp_fps"])
+    # bytes a frame of each recording level, from one run recorded at all three
+    levels = r["recording_levels"]
+    assert set(levels) == {"summary", "default", "full"}
+    assert levels["summary"]["bytes"] <= levels["default"]["bytes"] <= levels["full"]["bytes"]
+    assert all(v["frames"] == 6 and v["bytes_per_frame"] > 0 for v in levels.values())
 
 
 def test_missing_root_is_one_line_error(tmp_path, capsys):
