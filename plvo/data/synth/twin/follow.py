@@ -35,6 +35,7 @@ class FollowedPath:
     T_kitti_cam: np.ndarray
     rows: tuple[str, ...]
     context_road: np.ndarray  # (K,3) town-frame road points CONTEXT_M before and after the range (world building)
+    context_first: int  # index of frame A's road point in context_road (frames A..B-1 follow it one by one)
     file_road: np.ndarray  # (F,3) town-frame road points of every frame of the file
     file_speed: np.ndarray  # (F,) m/s at each frame of the file (zones)
 
@@ -117,7 +118,8 @@ def load_followed(path: str | Path, frames: str | None = None) -> FollowedPath:
     road = _road(poses)
     step = np.linalg.norm(np.diff(road, axis=0), axis=1) / FRAME_DT
     speed = np.concatenate([step[:1], step]) if len(step) else np.zeros(1)
-    return FollowedPath(str(path), a, poses[a:b].copy(), tuple(lines[a:b]), _context(poses, a, b), road, speed)
+    context, first = _context(poses, a, b)
+    return FollowedPath(str(path), a, poses[a:b].copy(), tuple(lines[a:b]), context, first, road, speed)
 
 
 def _road(T_kitti_cam: np.ndarray) -> np.ndarray:
@@ -125,7 +127,7 @@ def _road(T_kitti_cam: np.ndarray) -> np.ndarray:
     return T[:, :3, 3] + CAMERA_HEIGHT_M * T[:, :3, 1]
 
 
-def _context(poses: np.ndarray, a: int, b: int) -> np.ndarray:
+def _context(poses: np.ndarray, a: int, b: int) -> tuple[np.ndarray, int]:
     """Road points of the file from CONTEXT_M before frame A to CONTEXT_M after frame B-1, continued straight
     along the end headings where the file ends sooner."""
     road = _road(poses)
@@ -134,6 +136,7 @@ def _context(poses: np.ndarray, a: int, b: int) -> np.ndarray:
     hi = int(np.searchsorted(step, step[b - 1] + CONTEXT_M, side="right"))
     out = road[lo:hi]
     parts = [out]
+    first = a - lo
     for end, sign in ((0, -1.0), (len(road) - 1, 1.0)):
         missing = CONTEXT_M - abs(step[end] - step[a if sign < 0 else b - 1])
         if missing <= 0:
@@ -143,8 +146,12 @@ def _context(poses: np.ndarray, a: int, b: int) -> np.ndarray:
         heading /= max(np.linalg.norm(heading), 1e-9)
         s = np.arange(2.0, missing + 2.0, 2.0)[:, None]
         extra = road[end] + sign * s * heading
-        parts = [extra[::-1], *parts] if sign < 0 else [*parts, extra]
-    return np.concatenate(parts)
+        if sign < 0:
+            parts = [extra[::-1], *parts]
+            first += len(extra)
+        else:
+            parts = [*parts, extra]
+    return np.concatenate(parts), first
 
 
 class PoseInterpolator:

@@ -93,7 +93,7 @@ def build_twin(settings: TwinSettings, sequence: str) -> Twin:
     road = path.road_points()
     length = float(np.linalg.norm(np.diff(road, axis=0), axis=1).sum())
     n_movers = settings.traffic if settings.traffic is not None else max(MIN_TRAFFIC, int(length / TRAFFIC_EVERY_M))
-    traffic = Traffic(layout, road, int(n_movers), seed)
+    traffic = Traffic(layout, path.context_road, path.context_first, path.n_frames, int(n_movers), seed)
     renderer = TwinRenderer(town, n_ground, layout, traffic, lidar_model(settings.lidar), build_atlas(seed), seed)
     log.info("twin %s: %d frames, %.0f m, %d triangles, %d movers, %s", sequence, path.n_frames, length,
              len(town.triangles), len(traffic.movers), counts)

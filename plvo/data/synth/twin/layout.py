@@ -66,17 +66,17 @@ def _densify(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     seg = np.diff(points, axis=0)
     length = np.linalg.norm(seg[:, :2], axis=1)
     keep = length > 1e-3  # stopped frames add nothing
-    out, tang = [], []
+    out = []
     for p, d, ln in zip(points[:-1][keep], seg[keep], length[keep]):
         n = max(1, int(np.ceil(ln / step)))
-        w = np.arange(n)[:, None] / n
-        out.append(p + w * d)
-        tang.append(np.repeat((d[:2] / ln)[None], n, axis=0))
+        out.append(p + (np.arange(n)[:, None] / n) * d)
     if not out:  # a car standing still the whole time: one short stretch of road ahead of it
         return points[:1], np.array([[1.0, 0.0]])
     out.append(points[-1:])
-    tang.append(tang[-1][-1:])
-    return np.concatenate(out), np.concatenate(tang)
+    pts = np.concatenate(out)
+    # central differences: the same samples driven the other way get exactly the opposite tangents
+    d = np.concatenate([pts[1:2] - pts[:1], pts[2:] - pts[:-2], pts[-1:] - pts[-2:-1]])[:, :2]
+    return pts, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 class Layout:

@@ -29,7 +29,7 @@ TARGET_GREY = 0.40  # mean grey below the horizon after exposure
 GAIN_RANGE = (0.5, 2.5)
 EDGE_LINE = (0.30, 0.45)  # road edge line: this far inside the road's edge (m)
 SHADOW_EPS_M = 0.03
-SHOULDER = 0.7
+SHOULDER = 0.6
 _VERGE_MAT = {"pavement": M["pavement"], "grass": M["foliage"]}
 _ZONE_VERGE = np.array([_VERGE_MAT[z.verge] for z in ZONES], np.int32)
 
@@ -64,7 +64,7 @@ class TwinRenderer(Renderer):
         """(N,3) world directions -> sky radiance: darker towards the zenith, a glow round the sun, clouds."""
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         up = np.clip(d[:, 2], 0.0, 1.0)
-        base = 0.92 - 0.42 * np.sqrt(up)
+        base = 0.85 - 0.4 * np.sqrt(up)
         glow = 0.25 * np.clip(d @ self.sun, 0.0, 1.0) ** 8
         h = np.maximum(d[:, 2], 0.03)
         cu, cv = d[:, 0] / h * 40.0, d[:, 1] / h * 40.0  # a cloud layer 1 km up, 25 m a texel

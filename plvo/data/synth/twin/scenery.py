@@ -154,6 +154,8 @@ def _clear(layout: Layout, corners: np.ndarray, margin: float) -> bool:
 def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away: np.ndarray) -> bool:
     edge = layout.xy[k] + away * layout.half_width[k]  # the road edge on this side
     tangent = layout.tangent[k]
+    if tangent[0] < 0.0 or (tangent[0] == 0.0 and tangent[1] < 0.0):
+        tangent = -tangent  # the way the car drove past must not matter
     yaw = float(np.arctan2(tangent[1], tangent[0]))
     name = kind.name
     p_of = {"building": zone.building_p, "wall": zone.wall_p, "fence": zone.fence_p, "hedge": zone.hedge_p,

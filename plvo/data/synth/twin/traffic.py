@@ -3,8 +3,8 @@
 Each mover is a function of time (s, frame i at i * 0.1 s) -> body pose T_town_body (x forward, y left, z up, origin
 on the ground under the box centre), so the camera (at the frame's time) and the lidar (at each return's own time
 in the sweep) see it where it is at that instant. Ray casts run in each mover's body frame against its shape.
-A car ahead keeps at least its own gap in front of the ego car; a mover that would come within COLLIDE_M of the
-ego car at a frame is dropped (deterministically), so nothing drives through the camera.
+A car ahead keeps at least its own gap in front of the ego car; a mover that would come too close to the ego car
+(COLLIDE_M) at a frame is dropped (deterministically), so nothing drives through the camera.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from plvo.data.synth.twin.layout import CROSS_HALF_M, Layout
 
 M = MATERIAL_ID
 LANE_M = 3.5  # the oncoming lane's centre, left of the driven path
-COLLIDE_M = 4.0
+COLLIDE_M = 3.0  # least gap (m) between the ego car's box and a mover's centre in the same lane
 KINDS = ("ahead", "oncoming", "crossing")
 
 
@@ -81,12 +81,16 @@ class Mover:
 class Traffic:
     """The movers of a twin and their poses at any time; casts rays against them."""
 
-    def __init__(self, layout: Layout, road_points: np.ndarray, n_movers: int, seed: int) -> None:
+    def __init__(self, layout: Layout, road: np.ndarray, first: int, n_frames: int, n_movers: int, seed: int) -> None:
+        """road (K,3): the driven road in order, beyond the frames at both ends; frames first..first+n_frames-1
+        of it are the ego car's."""
         self.layout = layout
-        seg = np.linalg.norm(np.diff(road_points[:, :2], axis=0), axis=1)
-        self.S = np.concatenate([[0.0], np.cumsum(seg)])  # arc length (xy) of each frame
-        self.times = np.arange(len(road_points)) * FRAME_DT
-        self.road = road_points
+        seg = np.linalg.norm(np.diff(road[:, :2], axis=0), axis=1)
+        self.S = np.concatenate([[0.0], np.cumsum(seg)])  # arc length (xy) along the road
+        self.times = np.arange(n_frames) * FRAME_DT
+        self.ego_S = self.S[first:first + n_frames]
+        self.ego_xy = road[first:first + n_frames, :2]
+        self.road = road
         self.scenes = []
         for s in SHAPES:
             scene = o3d.t.geometry.RaycastingScene()
@@ -108,19 +112,19 @@ class Traffic:
                 kind = "oncoming"
             shape = int(rng.integers(len(SHAPES)))
             t0 = float(rng.uniform(0.0, T))
-            ego_v = max(float(np.interp(t0 + 1.0, self.times, self.S) - np.interp(t0 - 1.0, self.times, self.S)) / 2.0,
+            ego_v = max(float(np.interp(t0 + 1.0, self.times, self.ego_S) - np.interp(t0 - 1.0, self.times, self.ego_S)) / 2.0,
                         4.0)
             if kind == "ahead":
                 n_ahead += 1
                 m = Mover(0, kind, shape, float(np.clip(ego_v * rng.uniform(0.6, 1.1), 3.0, 30.0)), t0,
-                          float(np.interp(t0, self.times, self.S) + rng.uniform(15.0, 45.0)), gap=10.0 + 9.0 * n_ahead)
+                          float(np.interp(t0, self.times, self.ego_S) + rng.uniform(15.0, 45.0)), gap=10.0 + 9.0 * n_ahead)
             elif kind == "oncoming":
                 m = Mover(0, kind, shape, float(np.clip(ego_v * rng.uniform(0.7, 1.3), 4.0, 30.0)), t0,
-                          float(np.interp(t0, self.times, self.S)))
+                          float(np.interp(t0, self.times, self.ego_S)))
             else:
                 c = int(rng.integers(len(crossings)))
                 cxy = crossings[c, :2]
-                d = np.linalg.norm(self.road[:, :2] - cxy, axis=1)
+                d = np.linalg.norm(self.ego_xy - cxy, axis=1)
                 t_ego = float(self.times[int(np.argmin(d))])
                 side = 1.0 if rng.random() < 0.5 else -1.0
                 m = Mover(0, kind, shape, float(rng.uniform(6.0, 12.0)), t_ego + side * float(rng.uniform(2.5, 6.0)),
@@ -131,10 +135,14 @@ class Traffic:
                 for i, m in enumerate(kept)]
 
     def _collides(self, m: Mover) -> bool:
+        """Would the mover's centre come within the ego car's box grown by COLLIDE_M along and 2.6 m across?"""
         T, alive = self.pose(m, self.times)
-        ego = self.road[:, :2]
-        d = np.linalg.norm(T[:, :2, 3] - ego, axis=1)
-        return bool((alive & (d < COLLIDE_M)).any())
+        _, fwd = self._along(self.ego_S, 0.0, False)
+        f = fwd[:, :2] / np.maximum(np.linalg.norm(fwd[:, :2], axis=1, keepdims=True), 1e-9)
+        rel = T[:, :2, 3] - self.ego_xy
+        along = np.abs(np.einsum("ij,ij->i", rel, f))
+        across = np.abs(rel[:, 0] * f[:, 1] - rel[:, 1] * f[:, 0])
+        return bool((alive & (along < 2.5 + COLLIDE_M) & (across < 2.6)).any())
 
     # ---------------------------------------------------------------- poses
 
@@ -157,7 +165,7 @@ class Traffic:
         t = np.atleast_1d(np.asarray(t, np.float64))
         end = float(self.S[-1])
         if m.kind == "ahead":
-            s = np.maximum(np.interp(t, self.times, self.S) + m.gap, m.s0 + m.speed * (t - m.t0))
+            s = np.maximum(np.interp(t, self.times, self.ego_S) + m.gap, m.s0 + m.speed * (t - m.t0))
             pos, fwd = self._along(s, 0.0, False)
             alive = s <= end
         elif m.kind == "oncoming":
