@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     twin.add_argument("--kitti-poses", metavar="DIR", help="folder of KITTI pose files NN.txt (for --twins)")
     twin.add_argument("--traffic", type=int, default=None, metavar="N",
                       help="moving cars in a twin (default: one per 60 m of path; 0: none)")
-    twin.add_argument("--lidar", default="hdl64", choices=sorted(LIDAR_MODELS), help="lidar model of a twin")
+    twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_MODELS)}")
     twin.add_argument("--workers", type=int, default=1, help="--twins: local worker processes (or CPUs of local Ray)")
     twin.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                       help="--twins: fan out over Ray ('local' or a cluster address; the output on a shared disk)")

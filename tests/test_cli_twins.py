@@ -1,0 +1,61 @@
+"""`plvo synth --follow/--twins` and `plvo eval run --twins`: a twin is generated once (kept when current, staged
+until complete), Table I gets a row per twin, and bad input is one line with exit status 2."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from plvo.data.synth.twin.batch import parse_twins
+from plvo.errors import SynthError
+from plvo_app.cli import main
+
+
+def test_parse_twins():
+    assert parse_twins("00-03,08") == ["00", "01", "02", "03", "08"]
+    assert parse_twins("5") == ["05"]
+    with pytest.raises(SynthError, match="runs backwards"):
+        parse_twins("10-00")
+    with pytest.raises(SynthError, match="'x1'"):
+        parse_twins("00,x1")
+
+
+def test_synth_follow_errors_are_one_line(tmp_path, kitti_root, capsys):
+    poses = kitti_root / "poses" / "05.txt"
+    assert main(["synth", "--out", str(tmp_path), "--seq", "05", "--follow", str(poses), "--frames", "0:99999"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "05.txt has 2761 poses" in err
+    assert main(["synth", "--out", str(tmp_path), "--seq", "05", "--follow", str(tmp_path / "none.txt")]) == 2
+    assert "none.txt: no such pose file" in capsys.readouterr().err
+    assert main(["synth", "--out", str(tmp_path), "--twins", "05", "--kitti-poses", str(tmp_path)]) == 2
+    assert "05.txt: no such pose file" in capsys.readouterr().err
+    assert main(["synth", "--out", str(tmp_path), "--seq", "05", "--follow", str(poses), "--lidar", "hdl128"]) == 2
+    assert not (tmp_path / "sequences").exists()  # nothing written
+
+
+def test_eval_run_twins_generates_once_and_tables(tmp_path, kitti_root, capsys):
+    twins, out = tmp_path / "twins", tmp_path / "eval"
+    argv = ["eval", "run", "--twins", "05", "--kitti-poses", str(kitti_root / "poses"), "--twin-root", str(twins),
+            "--frames", "40:52", "--traffic", "3", "--ablations", "points_only", "--workers", "1", "--out", str(out),
+            "--no-plots"]
+    assert main(argv) == 0
+    seq = twins / "sequences" / "05"
+    assert len(list((seq / "image_0").glob("*.png"))) == 12 and len(list((seq / "velodyne").glob("*.bin"))) == 12
+    assert not list(twins.glob(".twin-*"))  # no staging folder left behind
+    report = json.loads((out / "report.json").read_text())
+    text = (out / "report.md").read_text()
+    assert "twin05" in text and "KISS-ICP" in text and "Point-only" in text
+    assert set(report["settings"]) == {"points_only", "kiss"}
+    stamp = (seq / "image_0" / "000000.png").stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(argv + ["--resume"]) == 0
+    assert "twin 05: kept (current)" in capsys.readouterr().err
+    assert (seq / "image_0" / "000000.png").stat().st_mtime_ns == stamp
+    gt = np.loadtxt(twins / "poses" / "05.txt").reshape(-1, 3, 4)
+    full = np.loadtxt(kitti_root / "poses" / "05.txt").reshape(-1, 3, 4)
+    T = np.tile(np.eye(4), (12, 1, 1))
+    T[:, :3] = full[40:52]
+    rebased = np.linalg.inv(T[0]) @ T
+    np.testing.assert_allclose(gt, rebased[:, :3], atol=1e-8)
