@@ -137,10 +137,7 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
     twins = getattr(args, "twins", None)
     if not sources and not twins:
         raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., --synth DIR or --twins 00-10")
-    sources = _label(sources) if sources else []
-    if twins:
-        sources += twin_sources(args)
-    return sources
+    return _label(sources) if sources else []  # the --twins sources come after the checks (twin_sources)
 
 
 def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
@@ -211,12 +208,12 @@ def run_run(args: argparse.Namespace) -> int:
         args.ablations = TABLE_I_ABLATIONS if twins else "full"
     if twins:
         args.kiss = True  # Table I on the twins: KISS-ICP beside the ablations
+    sources = gather_sources(args)
     ablations = parse_ablations(args.ablations)
     if not ablations and not args.kiss:
         raise PlvoError("nothing to run: --ablations none and no --kiss")
-    sources = gather_sources(args)
-    if not ablations and not args.kiss:
-        raise PlvoError("nothing to run: --ablations none and no --kiss")
+    if twins:
+        sources += twin_sources(args)  # generates what is missing: after every cheap check
     config = str(args.config.resolve()) if args.config else None
     specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions())
     specs = with_threads(specs, kiss_threads(args.workers, args.ray))
