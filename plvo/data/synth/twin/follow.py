@@ -36,6 +36,7 @@ class FollowedPath:
     rows: tuple[str, ...]
     context_road: np.ndarray  # (K,3) town-frame road points CONTEXT_M before and after the range (world building)
     context_first: int  # index of frame A's road point in context_road (frames A..B-1 follow it one by one)
+    context_real: np.ndarray  # (K,) bool: a frame of the file (False: the straight continuation past its ends)
     file_road: np.ndarray  # (F,3) town-frame road points of every frame of the file
     file_speed: np.ndarray  # (F,) m/s at each frame of the file (zones)
 
@@ -118,8 +119,8 @@ def load_followed(path: str | Path, frames: str | None = None) -> FollowedPath:
     road = _road(poses)
     step = np.linalg.norm(np.diff(road, axis=0), axis=1) / FRAME_DT
     speed = np.concatenate([step[:1], step]) if len(step) else np.zeros(1)
-    context, first = _context(poses, a, b)
-    return FollowedPath(str(path), a, poses[a:b].copy(), tuple(lines[a:b]), context, first, road, speed)
+    context, first, real = _context(poses, a, b)
+    return FollowedPath(str(path), a, poses[a:b].copy(), tuple(lines[a:b]), context, first, real, road, speed)
 
 
 def _road(T_kitti_cam: np.ndarray) -> np.ndarray:
@@ -127,7 +128,7 @@ def _road(T_kitti_cam: np.ndarray) -> np.ndarray:
     return T[:, :3, 3] + CAMERA_HEIGHT_M * T[:, :3, 1]
 
 
-def _context(poses: np.ndarray, a: int, b: int) -> tuple[np.ndarray, int]:
+def _context(poses: np.ndarray, a: int, b: int) -> tuple[np.ndarray, int, np.ndarray]:
     """Road points of the file from CONTEXT_M before frame A to CONTEXT_M after frame B-1, continued straight
     along the end headings where the file ends sooner."""
     road = _road(poses)
@@ -136,6 +137,7 @@ def _context(poses: np.ndarray, a: int, b: int) -> tuple[np.ndarray, int]:
     hi = int(np.searchsorted(step, step[b - 1] + CONTEXT_M, side="right"))
     out = road[lo:hi]
     parts = [out]
+    real = [np.ones(len(out), bool)]
     first = a - lo
     for end, sign in ((0, -1.0), (len(road) - 1, 1.0)):
         missing = CONTEXT_M - abs(step[end] - step[a if sign < 0 else b - 1])
@@ -147,11 +149,11 @@ def _context(poses: np.ndarray, a: int, b: int) -> tuple[np.ndarray, int]:
         s = np.arange(2.0, missing + 2.0, 2.0)[:, None]
         extra = road[end] + sign * s * heading
         if sign < 0:
-            parts = [extra[::-1], *parts]
+            parts, real = [extra[::-1], *parts], [np.zeros(len(extra), bool), *real]
             first += len(extra)
         else:
-            parts = [*parts, extra]
-    return np.concatenate(parts), first
+            parts, real = [*parts, extra], [*real, np.zeros(len(extra), bool)]
+    return np.concatenate(parts), first, np.concatenate(real)
 
 
 class PoseInterpolator:

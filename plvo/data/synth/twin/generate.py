@@ -88,7 +88,7 @@ def build_twin(settings: TwinSettings, sequence: str) -> Twin:
     settings.check()
     path = load_followed(settings.follow, settings.frames)
     seed = world_seed(settings.seed, sequence)
-    layout = Layout(path.context_road, path.file_road, path.file_speed, seed)
+    layout = Layout(path.context_road, path.file_road, path.file_speed, seed, path.context_real)
     town, n_ground, counts = build_world(layout, seed)
     road = path.road_points()
     length = float(np.linalg.norm(np.diff(road, axis=0), axis=1).sum())
@@ -127,6 +127,13 @@ def _boxes(twin: Twin, i: int, ids: np.ndarray, lidar_ids: np.ndarray, T_world_t
     return {"frame": i, "time_s": round(t, 6), "movers": movers}
 
 
+def camera_heights(twin: Twin) -> np.ndarray:
+    """(N,) cam0's height above the twin's ground at each frame: 1.65 m but where KITTI's ground truth puts two
+    passes over one place at different heights (the ground follows the lower one, see twin.layout)."""
+    cam = twin.path.T_town_cam[:, :3, 3]
+    return cam[:, 2] - twin.layout.height(cam[:, :2])
+
+
 def _write_ground_truth(gt: Path, settings: TwinSettings, twin: Twin, gains: list[float]) -> None:
     T_world_town = np.linalg.inv(twin.path.T_town_world)
     town = twin.renderer.town
@@ -140,7 +147,9 @@ def _write_ground_truth(gt: Path, settings: TwinSettings, twin: Twin, gains: lis
                    "poses": "the followed rows verbatim" if twin.path.first == 0 else
                    "the followed rows re-based on the first frame: inv(T_A) @ T_i"},
         "frames": {"dt_s": sensors.FRAME_DT},
-        "camera": {"exposure_gains": [round(g, 6) for g in gains], "auto_exposure": True},
+        "camera": {"exposure_gains": [round(g, 6) for g in gains], "auto_exposure": True,
+                   "height_above_ground_m": [round(float(h), 4) for h in camera_heights(twin)],
+                   "nominal_height_m": sensors.CAMERA_HEIGHT_M},
         "lidar": twin.renderer.lidar.as_json(),
         "world": {"seed": twin.seed, "T_town_world": twin.path.T_town_world.tolist(),
                   "sun_town": twin.renderer.sun.tolist(), "n_triangles": int(len(town.triangles)),

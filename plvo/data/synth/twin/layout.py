@@ -18,8 +18,9 @@ SAMPLE_M = 0.5
 ZONE_CELL_M = 250.0
 CROSS_CELL_M = 110.0  # at most one crossing street per square of this size
 CROSS_HALF_M = 120.0  # a crossing street runs this far either side of the path
-HEIGHT_SIGMA_M = 3.0
+HEIGHT_SIGMA_M = 3.0  # wide enough to average passes whose ground-truth heights disagree (KITTI's drift)
 HEIGHT_NEIGHBOURS = 24
+HEIGHT_SOFTMIN_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -82,11 +83,16 @@ def _densify(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
 class Layout:
     """Road samples (xy, z, unit tangent, zone, whether on the driven path) and queries over them."""
 
-    def __init__(self, road_points: np.ndarray, speed_xy: np.ndarray, speeds: np.ndarray, seed: int) -> None:
+    def __init__(self, road_points: np.ndarray, speed_xy: np.ndarray, speeds: np.ndarray, seed: int,
+                 real: np.ndarray | None = None) -> None:
         """road_points (N,3): the driven road in order; speed_xy (F,2), speeds (F,): where the car drove how fast
-        (m/s), for the zones (the whole followed file, so that slices of it agree)."""
+        (m/s), for the zones (the whole followed file, so that slices of it agree); real (N,): which road points
+        were driven (the others continue the road past the file's ends and give it no height)."""
         self.seed = seed
-        pts, tang = _densify(np.asarray(road_points, np.float64), SAMPLE_M)
+        road_points = np.asarray(road_points, np.float64)
+        pts, tang = _densify(road_points, SAMPLE_M)
+        driven = road_points if real is None or not np.any(real) else road_points[np.asarray(real, bool)]
+        hpts = _densify(driven, SAMPLE_M)[0]
         frame_of = cKDTree(np.asarray(speed_xy)[:, :2]).query(pts[:, :2])[1]
         speed = np.convolve(speeds, np.ones(41) / 41.0, mode="same") if len(speeds) > 41 else speeds
         zone = self._zones(pts[:, :2], speed[frame_of])
@@ -99,6 +105,10 @@ class Layout:
         self.crossings = cross[4]  # (C, 5): x, y, z of the crossing point, direction x, y of the street
         self.half_width = HALF_WIDTHS[self.zone]
         self.tree = cKDTree(self.xy)
+        # Heights come from the driven frames only: crossing streets and the continuations past the file's ends
+        # take the ground's height, never give it (they may cross a road that runs higher or lower).
+        self._height_tree = cKDTree(hpts[:, :2])
+        self._height_z = hpts[:, 2]
         self.path_xyz = pts
         self.lo = self.xy.min(axis=0)
         self.hi = self.xy.max(axis=0)
@@ -153,11 +163,18 @@ class Layout:
     def height(self, xy: np.ndarray) -> np.ndarray:
         """(N,2) -> ground height: a Gaussian-weighted mean of the nearby road heights (smooth, exact on slopes)."""
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        k = min(HEIGHT_NEIGHBOURS, len(self.xy))
-        d, idx = self.tree.query(xy, k=k)
+        k = min(HEIGHT_NEIGHBOURS, len(self._height_z))
+        d, idx = self._height_tree.query(xy, k=k)
         d, idx = d.reshape(len(xy), k), idx.reshape(len(xy), k)
         w = np.exp(-(d**2 - d[:, :1] ** 2) / (2.0 * HEIGHT_SIGMA_M**2))
-        return (w * self.z[idx]).sum(axis=1) / w.sum(axis=1)
+        z = self._height_z[idx]
+        # A soft minimum: where two passes over one place disagree in height (KITTI's ground truth drifts by
+        # metres in 02, 08, 09), the ground follows the lower, so no camera ends up under it (the higher one
+        # floats; scene.json lists each frame's camera height above the ground). On one pass it is the
+        # weighted mean, lowered by its spread^2 / 2 HEIGHT_SOFTMIN_M (millimetres on a 5 % slope).
+        z0 = z.min(axis=1, keepdims=True)
+        e = w * np.exp(-(z - z0) / HEIGHT_SOFTMIN_M)
+        return z0[:, 0] - HEIGHT_SOFTMIN_M * np.log(e.sum(axis=1) / w.sum(axis=1))
 
     def clearance(self, xy: np.ndarray) -> np.ndarray:
         """(N,2) -> metres beyond the road edge (negative: on a road)."""
