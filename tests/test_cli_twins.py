@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from plvo.data.synth.twin.batch import parse_twins
+from plvo.data.synth.twin.batch import parse_twins, twin_jobs
 from plvo.errors import SynthError
 from plvo_app.cli import main
 
@@ -59,3 +59,31 @@ def test_eval_run_twins_generates_once_and_tables(tmp_path, kitti_root, capsys):
     T[:, :3] = full[40:52]
     rebased = np.linalg.inv(T[0]) @ T
     np.testing.assert_allclose(gt, rebased[:, :3], atol=1e-8)
+
+
+def test_batch_over_processes_is_complete_or_absent(tmp_path, kitti_root):
+    from plvo.data.synth.twin.batch import ensure_twins, is_current
+    from plvo.data.synth.twin.generate import TwinSettings
+
+    jobs = twin_jobs(["05", "07"], kitti_root / "poses", TwinSettings("", "60:63", traffic=2))
+    seen, finished = [], []
+    done = ensure_twins(jobs, tmp_path, workers=2, progress=lambda d, n: seen.append((d, n)), on_done=finished.append)
+    assert [d.sequence for d in done] == ["05", "07"] and not any(d.error or d.cached for d in done)
+    assert seen[-1] == (6, 6) and {d.sequence for d in finished} == {"05", "07"}
+    assert all(is_current(tmp_path, j) for j in jobs)
+    assert all(len(list((tmp_path / "sequences" / j.sequence / "velodyne").glob("*.bin"))) == 3 for j in jobs)
+    again = ensure_twins(jobs, tmp_path, workers=2)
+    assert all(d.cached for d in again)
+    assert not list(tmp_path.glob(".twin-*"))
+
+
+def test_batch_over_ray(tmp_path, kitti_root):
+    pytest.importorskip("ray", reason="ray is not installed (the 'compare' extra)")
+    from plvo.data.synth.twin.batch import ensure_twins, is_current
+    from plvo.data.synth.twin.generate import TwinSettings
+
+    other = twin_jobs(["05"], kitti_root / "poses", TwinSettings("", "63:65", traffic=2))
+    done = ensure_twins(other, tmp_path, workers=1, ray="local")
+    assert not done[0].error and not done[0].cached and is_current(tmp_path, other[0])
+    assert len(list((tmp_path / "sequences" / "05" / "image_0").glob("*.png"))) == 2
+    assert not list(tmp_path.glob(".twin-*"))
