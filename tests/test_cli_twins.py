@@ -87,3 +87,18 @@ def test_batch_over_ray(tmp_path, kitti_root):
     assert not done[0].error and not done[0].cached and is_current(tmp_path, other[0])
     assert len(list((tmp_path / "sequences" / "05" / "image_0").glob("*.png"))) == 2
     assert not list(tmp_path.glob(".twin-*"))
+
+
+def test_the_stage_of_a_killed_run_is_cleared(tmp_path, kitti_root):
+    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+
+    settings = TwinSettings(str(kitti_root / "poses" / "05.txt"), "60:62", traffic=0)
+    generate_twin(tmp_path, "05", settings)
+    before = (tmp_path / "poses" / "05.txt").read_text()
+    dead = tmp_path / ".twin-05-999999999-abc"  # what a killed run leaves: a stage whose process is gone
+    (dead / "sequences" / "05" / "image_0").mkdir(parents=True)
+    assert (tmp_path / "sequences" / "05" / "calib.txt").is_file()
+    generate_twin(tmp_path, "05", TwinSettings(settings.follow, "62:64", traffic=0), overwrite=True)
+    assert not dead.exists() and not list(tmp_path.glob(".twin-*"))
+    assert (tmp_path / "poses" / "05.txt").read_text() != before
+    assert len(list((tmp_path / "sequences" / "05" / "velodyne").glob("*.bin"))) == 2

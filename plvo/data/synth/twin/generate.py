@@ -232,13 +232,25 @@ def check_twin_request(out_root: Path, sequence: str, settings: TwinSettings, ov
         raise SynthError(f"{target}: sequence {sequence} exists already (pass --overwrite)")
 
 
+def _remove_stale_stages(out_root: Path, sequence: str) -> None:
+    """Staging folders of twin NN left by a run that was killed (its process is gone)."""
+    for stage in out_root.glob(f".twin-{sequence}-*-*"):
+        try:
+            os.kill(int(stage.name.split("-")[2]), 0)
+        except (ValueError, IndexError, ProcessLookupError):
+            shutil.rmtree(stage, ignore_errors=True)
+        except PermissionError:
+            pass
+
+
 def generate_twin(out_root, sequence: str, settings: TwinSettings,
                   progress: Callable[[int, int], None] | None = None, overwrite: bool = False) -> Path:
     """Write twin NN under out_root (KITTI odometry layout), staged beside it and renamed in when complete."""
     out_root = Path(out_root)
     check_twin_request(out_root, sequence, settings, overwrite)
     out_root.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".twin-{sequence}-", dir=out_root))
+    _remove_stale_stages(out_root, sequence)
+    stage = Path(tempfile.mkdtemp(prefix=f".twin-{sequence}-{os.getpid()}-", dir=out_root))
     target = out_root / "sequences" / sequence
     try:
         write_twin(stage, sequence, settings, progress)
