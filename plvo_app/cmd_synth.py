@@ -126,7 +126,8 @@ def run_twins(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     try:
-        results = ensure_twins(jobs, args.out, workers=args.workers, ray=args.ray, progress=progress, on_done=on_done)
+        results = ensure_twins(jobs, args.out, workers=args.workers, ray=args.ray, progress=progress, on_done=on_done,
+                               overwrite=args.overwrite)
     finally:
         if bar is not None:
             bar.close()

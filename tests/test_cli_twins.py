@@ -33,6 +33,12 @@ def test_synth_follow_errors_are_one_line(tmp_path, kitti_root, capsys):
     assert "05.txt: no such pose file" in capsys.readouterr().err
     assert main(["synth", "--out", str(tmp_path), "--seq", "05", "--follow", str(poses), "--lidar", "hdl128"]) == 2
     assert not (tmp_path / "sequences").exists()  # nothing written
+    mine = tmp_path / "sequences" / "05"
+    (mine / "image_0").mkdir(parents=True)  # a sequence of the user's, not a twin: never replaced silently
+    assert main(["synth", "--out", str(tmp_path), "--twins", "05", "--kitti-poses", str(kitti_root / "poses"),
+                 "--frames", "0:2"]) == 2
+    assert "exists and is not a twin (pass --overwrite" in capsys.readouterr().err
+    assert mine.is_dir() and not list((mine / "image_0").iterdir())
 
 
 def test_eval_run_twins_generates_once_and_tables(tmp_path, kitti_root, capsys):

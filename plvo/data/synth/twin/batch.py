@@ -97,14 +97,27 @@ def _run_local(job: TwinJob, root: str, progress_queue=None) -> TwinDone:
     return TwinDone(job.sequence, n, time.perf_counter() - start, False)
 
 
+def is_twin(root: Path, sequence: str) -> bool:
+    """Whether root/sequences/NN is a twin (which a batch may replace when stale), by its gt/scene.json."""
+    try:
+        data = json.loads((Path(root) / "sequences" / sequence / "gt" / "scene.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return data.get("generator") == "plvo.data.synth.twin"
+
+
 def ensure_twins(jobs: Sequence[TwinJob], root: str | Path, workers: int = 1, ray: str | None = None,
                  progress: Callable[[int, int], None] | None = None,
-                 on_done: Callable[[TwinDone], None] | None = None) -> list[TwinDone]:
+                 on_done: Callable[[TwinDone], None] | None = None, overwrite: bool = False) -> list[TwinDone]:
     """Generate every job's twin under root unless it is there and current; results in the order of jobs.
-    progress(frames done, frames total) over all twins to generate; on_done(TwinDone) as each finishes."""
+    A stale twin is replaced; any other sequence folder NN only with overwrite. progress(frames done, frames
+    total) over all twins to generate; on_done(TwinDone) as each finishes."""
     root = Path(root)
     for job in jobs:
         check_twin_request(root, job.sequence, job.settings, overwrite=True)
+        target = root / "sequences" / job.sequence
+        if target.exists() and not overwrite and not is_twin(root, job.sequence):
+            raise SynthError(f"{target}: exists and is not a twin (pass --overwrite to replace it)")
     results: dict[int, TwinDone] = {}
     todo = []
     for k, job in enumerate(jobs):
