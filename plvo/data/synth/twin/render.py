@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from plvo.data.synth import sensors
 from plvo.data.synth.mesh import Town
 from plvo.data.synth.render import AMBIENT, DIFFUSE, MIN_VIEW_COS, NOISE_BANK_EXTRA, OPTICS_BLUR_SIGMA_PX, Renderer
 from plvo.data.synth.textures import MATERIAL_ID, TextureAtlas

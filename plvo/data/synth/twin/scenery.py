@@ -103,7 +103,7 @@ def _ground(b: MeshBuilder, layout: Layout) -> int:
     tris = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
     # Texture frame: world x, y (the renderer shades the ground from the hit position, see twin.render).
     frames = np.tile(np.array([0.0, 0, 0, 1, 0, 0, 0, 1, 0]), (len(tris), 1))
-    b._push(verts, tris, frames, M["asphalt"], 1.0, -1)
+    b.add_triangles(verts, tris, frames, M["asphalt"])
     return len(tris)
 
 

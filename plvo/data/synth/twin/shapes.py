@@ -37,7 +37,7 @@ def oriented_box(b: MeshBuilder, c, yaw: float, length: float, width: float, z0:
         a, e = lo[k], lo[(k + 1) % 4]
         b.add_quad(a, e - a, [0.0, 0.0, z1 - z0], material, tint, facade=facades[k])
         if facades[k] >= 0:
-            b._facade_edges(a, e - a, facades[k])  # window and door outlines are ground-truth edges too
+            b.add_facade_edges(a, e - a, facades[k])  # window and door outlines are ground-truth edges too
     b.add_quad(hi[0], hi[1] - hi[0], hi[3] - hi[0], material if top is None else top, tint, origin=hi[0])
     if edges:
         ring = [(lo[k], lo[(k + 1) % 4]) for k in range(4)] + [(hi[k], hi[(k + 1) % 4]) for k in range(4)]
