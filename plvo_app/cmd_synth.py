@@ -1,8 +1,12 @@
-"""Generate a synthetic town sequence in the KITTI odometry layout (images, scans, calib, poses, ground truth).
+"""Generate a synthetic sequence in the KITTI odometry layout (images, scans, calib, poses, ground truth).
 
-Example: plvo synth --out data/synth --seq 00 --frames 300 --seed 1 --loop
-writes data/synth/sequences/00/{image_0,velodyne,gt}/..., calib.txt, times.txt and data/synth/poses/00.txt,
-readable by pykitti.odometry('data/synth', '00') and by `plvo-viz --root data/synth --seq 00`.
+Examples:
+  plvo synth --out data/synth --seq 00 --frames 300 --seed 1 --loop        # the town: a grid of blocks
+  plvo synth --out data/twins --seq 05 --follow ../shared/data/kitti/poses/05.txt --frames 0:200
+  plvo synth --out data/twins --twins 00-10 --kitti-poses ../shared/data/kitti/poses --frames 0:100 --workers 2
+write OUT/sequences/NN/{image_0,velodyne,gt}/..., calib.txt, times.txt and OUT/poses/NN.txt, readable by
+pykitti.odometry('OUT', 'NN') and by `plvo-viz --root OUT --seq NN`. A twin (--follow, --twins) is driven along a
+KITTI pose file, with traffic, sun and shadows and a rolling lidar sweep (see plvo.data.synth.twin).
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from tqdm import tqdm
 
 from plvo.data.synth import SynthSettings, generate_sequence
 from plvo.data.synth.generate import check_request
+from plvo.data.synth.twin.lidars import LIDAR_MODELS
+from plvo.errors import SynthError
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = __doc__.strip()
     parser.add_argument("--out", required=True, help="dataset root to write (sequences/NN and poses/NN.txt)")
     parser.add_argument("--seq", default="00", help="two-digit sequence number")
-    parser.add_argument("--frames", type=int, default=300, help="number of frames (10 per second)")
+    parser.add_argument("--frames", default=None,
+                        help="the town: number of frames (10 per second, default 300); a twin: range A:B of the "
+                             "followed file (B exclusive; default all)")
     parser.add_argument("--seed", type=int, default=0, help="town and trajectory seed; same seed, same files")
     parser.add_argument("--speed", type=float, default=10.0, help="driving speed in m/s (KITTI: 5-15)")
     parser.add_argument("--loop", action="store_true",
@@ -34,10 +42,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="relative camera gain swing between frames, 0..0.5 (0: constant exposure)")
     parser.add_argument("--depth", action="store_true", help="also write per-pixel cam0 depth (gt/depth/*.npy)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence NN")
+    twin = parser.add_argument_group("KITTI twins (driven along a KITTI pose file)")
+    twin.add_argument("--follow", metavar="POSES.txt", help="KITTI pose file (cam0) to drive along")
+    twin.add_argument("--twins", metavar="00-10", help="several twins at once, following --kitti-poses/NN.txt")
+    twin.add_argument("--kitti-poses", metavar="DIR", help="folder of KITTI pose files NN.txt (for --twins)")
+    twin.add_argument("--traffic", type=int, default=None, metavar="N",
+                      help="moving cars in a twin (default: one per 60 m of path; 0: none)")
+    twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_MODELS)}")
+    twin.add_argument("--workers", type=int, default=1, help="--twins: local worker processes (or CPUs of local Ray)")
+    twin.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                      help="--twins: fan out over Ray ('local' or a cluster address; the output on a shared disk)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _town_frames(text) -> int:
+    if text is None:
+        return 300
+    try:
+        return int(text)
+    except ValueError:
+        raise SynthError(f"--frames {text!r}: the town takes a number of frames (A:B ranges are for --follow)") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.follow or args.twins:
+        return run_twins(args)
+    args.frames = _town_frames(args.frames)
     settings = SynthSettings(args.frames, args.seed, args.speed, args.loop, args.stops, args.exposure_change,
                              args.depth)
     check_request(args.out, args.seq, settings, args.overwrite)  # clear errors before any output
@@ -61,3 +91,48 @@ def run(args: argparse.Namespace) -> int:
     log.info("wrote %s/sequences/%s: %d frames in %.1f s (%.1f frames/s including town setup)",
              root, args.seq, args.frames, seconds, args.frames / seconds)
     return 0
+
+
+def run_twins(args: argparse.Namespace) -> int:
+    """--follow (one twin as --seq) or --twins (several, in parallel): generate, report frames a second."""
+    from plvo.data.synth.twin.batch import TwinJob, ensure_twins, parse_twins, twin_jobs
+    from plvo.data.synth.twin.generate import TwinSettings
+
+    if args.follow and args.twins:
+        raise SynthError("--follow and --twins: give one (--twins follows --kitti-poses/NN.txt)")
+    if args.workers < 1:
+        raise SynthError(f"--workers {args.workers}: must be at least 1")
+    base = TwinSettings(str(args.follow or ""), args.frames, args.seed, args.traffic, args.lidar, args.depth)
+    if args.twins:
+        if not args.kitti_poses:
+            raise SynthError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ...)")
+        jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
+    else:
+        from plvo.data.synth.twin.generate import check_twin_request
+
+        check_twin_request(args.out, args.seq, base, args.overwrite)
+        jobs = [TwinJob(args.seq, base)]
+    bar = None if args.no_progress else tqdm(total=0, unit="frame", desc="twins " + ",".join(j.sequence for j in jobs))
+
+    def progress(done: int, total: int) -> None:
+        if bar is not None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+    def on_done(d) -> None:
+        state = "kept (current)" if d.cached else (f"FAILED: {d.error}" if d.error else
+                                                   f"{d.frames} frames in {d.seconds:.1f} s, {d.fps:.2f} frames/s")
+        (bar.write if bar is not None else print)(f"twin {d.sequence}: {state}")
+
+    start = time.perf_counter()
+    try:
+        results = ensure_twins(jobs, args.out, workers=args.workers, ray=args.ray, progress=progress, on_done=on_done,
+                               overwrite=args.overwrite)
+    finally:
+        if bar is not None:
+            bar.close()
+    seconds = time.perf_counter() - start
+    frames = sum(r.frames for r in results)
+    log.info("wrote %d twin(s) under %s: %d frames in %.1f s (%.2f frames/s over the batch)",
+             sum(not r.cached and not r.error for r in results), args.out, frames, seconds, frames / max(seconds, 1e-9))
+    return 0 if not any(r.error for r in results) else 1

@@ -6,6 +6,11 @@ Examples:
   plvo eval run --root ../shared/data/kitti --seq 04 --ablations none --kiss
   plvo eval run --root /data/kitti --seq 00 01 02 --ray local --workers 2
   plvo eval run --root /data/kitti --seq 00 --ray ray://head:10001 --set tracking.keyframe_every=3
+  plvo eval run --twins 00-10 --kitti-poses ../shared/data/kitti/poses --twin-root data/twins --frames 0:200
+
+--twins generates (or keeps, when current) the KITTI twins NN under --twin-root, driven along --kitti-poses/NN.txt
+(frames --frames of each, then run whole), and runs Table I on them: by default the ablations full,
+no_depth_priors, no_scale_correction, points_only and KISS-ICP beside them; rows are labelled twinNN.
 
 Each (sequence, setting) is one task writing `OUT/runs/<setting>/<sequence>/` (poses.txt, gt.txt, result.json,
 config.toml) atomically; the tables go to OUT/report.md and OUT/report.json, the plots to OUT/plots/*.png.
@@ -30,6 +35,7 @@ from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, k
 from plvo_app.source_args import add_source_arguments
 
 log = logging.getLogger(__name__)
+TABLE_I_ABLATIONS = "full,no_depth_priors,no_scale_correction,points_only"  # Ours (*), (-), (#), point-only
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,11 +49,22 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "--synth", nargs="+", type=Path, default=[], metavar="DIR",
         help="synthetic town output: a root holding sequences/* (all are run) or one sequences/NAME folder",
     )
-    src.add_argument("--frames", metavar="A:B", help="run frames A..B-1 of every sequence (default: all)")
+    src.add_argument("--frames", metavar="A:B",
+                     help="run frames A..B-1 of every sequence (default: all); with --twins, the twins' range")
     add_source_arguments(p)
+    twins = p.add_argument_group("KITTI twins (synthetic sequences driven along KITTI's trajectories)")
+    twins.add_argument("--twins", metavar="00-10", help="twins to generate (if missing) and run, e.g. 00-10 or 01,05")
+    twins.add_argument("--kitti-poses", type=Path, metavar="DIR", help="folder of the KITTI pose files NN.txt")
+    twins.add_argument("--twin-root", type=Path, default=Path("data/twins"),
+                       help="where the twins are kept (default: %(default)s)")
+    twins.add_argument("--twin-seed", type=int, default=0, help="world seed of the twins (default: 0)")
+    twins.add_argument("--traffic", type=int, default=None, metavar="N",
+                       help="moving cars per twin (default: one per 60 m of path)")
+    twins.add_argument("--lidar", default="hdl64", help="lidar model of the twins (default: hdl64)")
     p.add_argument(
-        "--ablations", default="full", metavar="A,B,...",
-        help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full)",
+        "--ablations", default=None, metavar="A,B,...",
+        help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full; "
+             f"with --twins: {TABLE_I_ABLATIONS})",
     )
     p.add_argument("--kiss", action="store_true", help="also run KISS-ICP (lidar only, voxel 1 m) on the same scans")
     p.add_argument("--inline", action="store_true", help="also run each ablation inline (backend.concurrent = "
@@ -131,9 +148,45 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
     elif args.root is not None:
         raise PlvoError("--root given without --seq: name the sequences to run, e.g. --seq 00 04")
     sources += [replace(s, **extra) for s in synth_sources(args.synth, args.frames)]
-    if not sources:
-        raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., or --synth DIR")
-    return _label(sources)
+    twins = getattr(args, "twins", None)
+    if not sources and not twins:
+        raise PlvoError("no sequence to run: give --root DIR --seq 04 ..., --synth DIR or --twins 00-10")
+    return _label(sources) if sources else []  # the --twins sources come after the checks (twin_sources)
+
+
+def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
+    """Generate the --twins that are missing or stale under --twin-root (in parallel, with a progress bar), then
+    one source per twin, labelled twinNN."""
+    from tqdm import tqdm
+
+    from plvo.data.synth.twin.batch import ensure_twins, parse_twins, twin_jobs
+    from plvo.data.synth.twin.generate import TwinSettings
+
+    if args.kitti_poses is None:
+        raise PlvoError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ... 10.txt)")
+    base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar)
+    jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
+    bar = tqdm(total=0, unit="frame", desc="twins", file=sys.stderr)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    def on_done(d) -> None:
+        state = "kept (current)" if d.cached else (f"FAILED: {d.error}" if d.error else
+                                                   f"generated, {d.frames} frames at {d.fps:.2f} frames/s")
+        bar.write(f"twin {d.sequence}: {state}", file=sys.stderr)
+
+    try:
+        done = ensure_twins(jobs, args.twin_root, workers=args.workers, ray=args.ray, progress=progress,
+                            on_done=on_done)
+    finally:
+        bar.close()
+    failed = [d for d in done if d.error]
+    if failed:
+        raise PlvoError(f"twin {failed[0].sequence}: generation failed: {failed[0].error}")
+    root = str(args.twin_root.resolve())
+    return [SequenceSource(root, j.sequence, None, f"twin{j.sequence}") for j in jobs]
 
 
 def parse_ablations(text: str) -> list[str]:
@@ -166,10 +219,17 @@ def run_run(args: argparse.Namespace) -> int:
         raise PlvoError(f"--workers {args.workers}: must be at least 1")
     if args.out.exists() and not args.out.is_dir():
         raise OutputError(f"--out {args.out}: is a file, not an output folder")
+    twins = getattr(args, "twins", None)
+    if args.ablations is None:
+        args.ablations = TABLE_I_ABLATIONS if twins else "full"
+    if twins:
+        args.kiss = True  # Table I on the twins: KISS-ICP beside the ablations
     sources = gather_sources(args)
     ablations = parse_ablations(args.ablations)
     if not ablations and not args.kiss:
         raise PlvoError("nothing to run: --ablations none and no --kiss")
+    if twins:
+        sources += twin_sources(args)  # generates what is missing: after every cheap check
     config = str(args.config.resolve()) if args.config else None
     specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions(),
                         inline=args.inline)

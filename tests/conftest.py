@@ -51,3 +51,20 @@ def synth_seq(synth_sequence_factory) -> Path:
     """Root (KITTI odometry layout, sequence '00') of a 20-frame synthetic town sequence at 10 m/s, seed 0, with
     per-pixel depth in sequences/00/gt/depth; generated once per session."""
     return synth_sequence_factory(SYNTH_SEQ_FRAMES, seed=0, write_depth=True)
+
+
+# --- KITTI twins (plvo.data.synth.twin) -----------------------------------------------------------------------
+
+TWIN_FRAMES = "60:80"  # 16 m at 8 m/s (07 starts standing)
+TWIN_SEQUENCE = "07"
+
+
+@pytest.fixture(scope="session")
+def twin_root(kitti_root, tmp_path_factory) -> Path:
+    """Root of a 20-frame KITTI twin of 07 (frames 60:80, 8 movers, depth written); generated once per session."""
+    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+
+    root = tmp_path_factory.mktemp("twin07")
+    settings = TwinSettings(str(kitti_root / "poses" / f"{TWIN_SEQUENCE}.txt"), TWIN_FRAMES, seed=0, traffic=8,
+                            write_depth=True)
+    return generate_twin(root, TWIN_SEQUENCE, settings)

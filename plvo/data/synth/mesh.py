@@ -98,6 +98,16 @@ class MeshBuilder:
         o = np.broadcast_to(np.asarray(origin, np.float64), au.shape)
         self._push(verts, tris, np.concatenate([o, au, av], axis=1), material, tint, -1)
 
+    def add_triangles(self, verts: np.ndarray, tris: np.ndarray, frames: np.ndarray, material: int,
+                      tint: float = 1.0, facade: int = -1) -> None:
+        """(V,3) vertices, (T,3) triangles, (T,9) texture frames (origin, u axis, v axis) of one material."""
+        self._push(np.asarray(verts, np.float64), np.asarray(tris), np.asarray(frames, np.float64), material, tint,
+                   facade)
+
+    def add_facade_edges(self, corner, along, fac: int) -> None:
+        """The window, door and sign outlines of facade row `fac` on a wall from `corner` along `along`."""
+        self._facade_edges(np.asarray(corner, np.float64), np.asarray(along, np.float64), fac)
+
     def _push(self, verts, tris, frames, material, tint, facade) -> None:
         self._verts.append(verts)
         self._tris.append(tris + self._n_verts)
