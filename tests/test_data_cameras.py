@@ -80,7 +80,7 @@ def test_viz_camera_option_opens_camera_2(colour_only):
 
     parser = argparse.ArgumentParser()
     cmd_viz.add_arguments(parser)
-    dataset, label = cmd_viz._open(parser.parse_args(["--root", str(colour_only), "--seq", "00", "--camera", "2"]))
+    dataset, label, _ = cmd_viz._open(parser.parse_args(["--root", str(colour_only), "--seq", "00", "--camera", "2"]))
     assert label == "00" and dataset[0].color is not None
 
 
