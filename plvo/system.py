@@ -106,6 +106,9 @@ class System:
         self._depth_debug: list[Any] = []
         self._ref_kf = -1
         self._frame_now = 0
+        # The largest pose-graph move of the loops since the last applied global BA: a global BA that supersedes
+        # skipped ones refines all of their corrections, and is judged against the largest (global_ba.implausible).
+        self._pose_graph_move_m = 0.0
 
     @property
     def map(self):
@@ -289,11 +292,14 @@ class System:
             log.info("loop %d -> %d closed: %d keyframes corrected", e.j, e.i, self.map.n_keyframes)
             if self.config.loop.global_ba:
                 _, _, lag_g = self._lags
-                job = GlobalBAJob(out.frame_index, self.map.global_data(), out.correction_m, self._loop_applied())
+                self._pose_graph_move_m = max(self._pose_graph_move_m, out.correction_m)
+                job = GlobalBAJob(out.frame_index, self.map.global_data(), self._pose_graph_move_m,
+                                  self._loop_applied())
                 self._submit("loop", job, self._frame_now + lag_g)
         if c is not None:
             if c.source == GLOBAL_BA:
                 self.loop_stats["global_ba"] += 1
+                self._pose_graph_move_m = 0.0
             results.append(self._graph(out.frame_index))
         timings = dict(out.timings)
         if c is not None:
