@@ -177,6 +177,7 @@ def test_a_global_ba_read_before_a_later_loop_correction_is_skipped():
 
     m = _street(4)
     core = object.__new__(LoopCore)  # only the bookkeeping is exercised: no vocabulary, no calibration
+    core._skipped = 0
     core._made = [MapCorrection(LOOP, np.arange(4), m.poses(), m.poses()),
                   MapCorrection(LOOP, np.arange(4), m.poses(), m.poses())]
     out = core.process(GlobalBAJob(30, m.global_data(), 1.0, corrections_applied=1))

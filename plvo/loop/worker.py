@@ -96,6 +96,7 @@ class LoopCore:
         self.closer = LoopCloser(self.K, cfg=config.loop, T_cam_velo=np.asarray(calib.T_cam_velo, float),
                                  reg_cfg=config.registration)
         self._made: list[MapCorrection] = []  # every correction this core returned, in order
+        self._skipped = 0  # global BAs skipped since the last one that ran (superseded by a later loop)
 
     def process(self, job: LoopJob | GlobalBAJob) -> LoopOutput:
         if isinstance(job, GlobalBAJob):
@@ -138,6 +139,7 @@ class LoopCore:
             # its landmarks lack that correction, and the System submits another global BA once it is applied.
             log.info("global BA after the loop at frame %d skipped: a later loop correction supersedes it",
                      job.frame_index)
+            self._skipped += 1
             return LoopOutput(job.frame_index, None, rejected="superseded by a later loop correction")
         poses = np.asarray(d.T_world_cam, float)
         ids = np.asarray(d.kf_ids, np.int64)
@@ -148,7 +150,11 @@ class LoopCore:
                            d.measurement)
         problem, pt_ids = global_ba.build_problem(self.K, poses, self._edges(ids, d.edges), obs, d.positions, depth,
                                                    self.cfg.loop, self.cfg.backend)
-        res = global_ba.optimize(problem, self.cfg.backend, self.cfg.loop, self.cfg.tracking.use_depth_priors,
+        # It does the work of the ones it superseded too: as many iterations as they would have had together.
+        loop_cfg = dataclasses.replace(self.cfg.loop,
+                                       global_ba_iterations=self.cfg.loop.global_ba_iterations * (1 + self._skipped))
+        self._skipped = 0
+        res = global_ba.optimize(problem, self.cfg.backend, loop_cfg, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
         timings = {"loop_global_ba": time.perf_counter() - t0}
         why = global_ba.implausible(poses, res, self.cfg.loop, job.correction_m)
