@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,3 +41,15 @@ def one_error_line(stderr: str) -> str:
     lines = [ln for ln in stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1 and "Traceback" not in stderr, stderr[-3000:]
     return lines[0]
+
+
+REPO = Path(__file__).resolve().parents[1]
+VIZ = [sys.executable, "-c", "import sys; from plvo_app.cli import main_viz; sys.exit(main_viz())"]
+
+
+def viz_env() -> dict[str, str]:
+    """The environment for a plvo-viz subprocess of this checkout (no $KITTI_ROOT)."""
+    env = dict(os.environ)
+    env.pop("KITTI_ROOT", None)
+    env["PYTHONPATH"] = f"{REPO}{os.pathsep}{env.get('PYTHONPATH', '')}"
+    return env

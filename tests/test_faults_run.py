@@ -9,25 +9,16 @@ import os
 import shutil
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from faults_table import fault, one_error_line
+from faults_table import fault, one_error_line, VIZ, viz_env
 from plvo_app.rrd_reader import read_rrd
 
-REPO = Path(__file__).resolve().parents[1]
-VIZ = [sys.executable, "-c", "import sys; from plvo_app.cli import main_viz; sys.exit(main_viz())"]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("KITTI_ROOT", None)
-    env["PYTHONPATH"] = f"{REPO}{os.pathsep}{env.get('PYTHONPATH', '')}"
-    return env
+_env = viz_env
 
 
 @pytest.fixture

@@ -4,26 +4,16 @@ during the clean-up loses nothing, and quitting the viewer after a complete run 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
-from faults_table import fault
+from faults_table import fault, VIZ, viz_env
 from plvo_app.rrd_reader import read_rrd
 
-REPO = Path(__file__).resolve().parents[1]
-VIZ = [sys.executable, "-c", "import sys; from plvo_app.cli import main_viz; sys.exit(main_viz())"]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env.pop("KITTI_ROOT", None)
-    env["PYTHONPATH"] = f"{REPO}{os.pathsep}{env.get('PYTHONPATH', '')}"
-    return env
+_env = viz_env
 
 
 def _start(synth_seq: Path, cwd: Path, *extra: str) -> subprocess.Popen:
