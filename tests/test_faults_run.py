@@ -177,6 +177,18 @@ def test_failed_recording_write_stops_the_run(town, tmp_path, capsys, monkeypatc
         real(self, chunk, ends)
 
     monkeypatch.setattr(rrd_sink.RrdFileSink, "_write", failing)
+    # The recorder hands chunks over every 2 s: a run shorter than that writes once, at the close. Each frame is
+    # made to take 0.25 s, so that the file is written during the run and the failing write comes after one that
+    # succeeded, whatever the machine's speed.
+    from plvo.system import System
+
+    step = System.step
+
+    def slow_step(self, frame):
+        time.sleep(0.25)
+        return step(self, frame)
+
+    monkeypatch.setattr(System, "step", slow_step)
     # full: every frame's image, so that 200 kB are written within the first frames
     status, err = _viz([*town, "--frames", "0:20", "--record", "full", "--rrd", "run.rrd", "--out", "out"], capsys)
     line = one_error_line(err)
