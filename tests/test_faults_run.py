@@ -9,6 +9,7 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -144,7 +145,13 @@ def test_disk_full_during_the_run(synth_seq, tmpfs, tmp_path):
     row = fault("disk-full")
     cmd = ["--root", str(synth_seq), "--seq", "00", "--frames", "0:15", "--no-serve", "--record", "full", "--rrd",
            str(tmpfs / "run.rrd"), "--out", "out"]  # full: every frame's image, so the file fills the disk early
-    p = subprocess.Popen(VIZ + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE, text=True)
+    # Each frame made to take 0.25 s: the recorder hands chunks over every 2 s, and a quick machine would finish
+    # these frames before the first of them reached the disk.
+    slow = ("import sys, time; from plvo.system import System; step = System.step; "
+            "System.step = lambda self, f: (time.sleep(0.25), step(self, f))[1]; "
+            "from plvo_app.cli import main_viz; sys.exit(main_viz())")
+    p = subprocess.Popen([sys.executable, "-c", slow] + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE,
+                         text=True)
     t0 = time.time()  # frames are on disk (the stream is written every 2 s): then the disk fills up
     while not ((tmpfs / "run.rrd").is_file() and (tmpfs / "run.rrd").stat().st_size > 200_000) \
             and time.time() - t0 < 120 and p.poll() is None:
