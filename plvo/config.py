@@ -209,6 +209,8 @@ class LoopConfig:
     global_ba: bool = True  # a global bundle adjustment of poses and points after the pose graph (global_ba.py)
     global_ba_iterations: int = 10
     global_ba_max_px: float = 8.0  # observations further from their landmark's projection are left out
+    # Points in the global BA at most, the same share for every keyframe (global_ba.point_budget); 0: all.
+    global_ba_max_points: int = 15000
     # A global BA result moving a keyframe further from the pose graph's solution than max_move_m + move_fraction x
     # the pose graph's largest correction is not applied (global_ba.implausible).
     # Measured on the 1 km loop of synthetic sequence 21: results moving a mid-loop keyframe 1.0 m from the pose
@@ -220,6 +222,9 @@ class LoopConfig:
     # synthetic town repeats buildings: a 187 m false loop passed PnP/PnL and scan registration). 0 disables.
     max_drift_fraction: float = 0.1
     max_drift_floor_m: float = 2.0
+    # Two keyframes that see one place are at most this far apart: a longer loop edge is refused, and a candidate
+    # the odometry puts further away than its drift bound plus this is refused before verification.
+    max_view_m: float = 40.0
     # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
     # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
     max_lag_frames: int = 20

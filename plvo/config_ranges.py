@@ -92,8 +92,10 @@ RANGES: dict[str, Range] = {
     "loop.min_off_plane": COUNT0, "loop.plane_tolerance_m": POSITIVE, "loop.odom_sigma_rot": POSITIVE,
     "loop.odom_sigma_trans": POSITIVE, "loop.loop_sigma_rot": POSITIVE, "loop.loop_sigma_trans": POSITIVE,
     "loop.pgo_iterations": COUNT, "loop.global_ba_iterations": COUNT, "loop.global_ba_max_px": POSITIVE,
+    "loop.global_ba_max_points": COUNT0,
     "loop.global_ba_max_move_m": NON_NEGATIVE, "loop.global_ba_move_fraction": NON_NEGATIVE,
     "loop.max_drift_fraction": NON_NEGATIVE, "loop.max_drift_floor_m": NON_NEGATIVE,
+    "loop.max_view_m": POSITIVE,
     "loop.max_lag_frames": COUNT0, "loop.global_ba_lag_frames": COUNT0,
 }
 

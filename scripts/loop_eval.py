@@ -51,7 +51,7 @@ def _run(root: str, seq: str, setting: str) -> dict:
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.eval.kitti_metric import evaluate_sequence
-    from plvo.eval.revisits import revisits as true_revisits
+    from plvo.eval.revisits import detection_stats
     from plvo.eval.tasks import anchor, metrics_dict
     from plvo.system import run_dataset
 
@@ -69,22 +69,10 @@ def _run(root: str, seq: str, setting: str) -> dict:
                           if k.startswith("loop") and np.any(np.asarray(v) > 0)}}
     if setting == "no_loop":
         return res
-    revisits = true_revisits(gt, rec.kf_frame, cfg.loop.min_keyframe_gap)
     accepted = [r for r in rec.loops if r.accepted]
-    true = [r for r in accepted if r.match_keyframe in revisits.get(r.query_keyframe, set())]
-    qs = sorted(revisits)
-    passages = [[q] for q in qs[:1]]
-    for q in qs[1:]:
-        (passages[-1].append(q) if q == passages[-1][-1] + 1 else passages.append([q]))
-    acc_q = {r.query_keyframe for r in true}
-    cooldown = cfg.loop.loop_cooldown
-    covered = [q for q in qs if any(0 <= q - a <= cooldown for a in acc_q)]
-    res.update({
-        "accepted": [(r.query_keyframe, r.match_keyframe, r.frame_index) for r in accepted],
-        "n_accepted": len(accepted), "n_true": len(true), "n_revisit_keyframes": len(qs),
-        "n_passages": len(passages), "n_passages_found": sum(1 for p in passages if acc_q & set(p)),
-        "n_revisit_keyframes_covered": len(covered),
-    })
+    res["accepted"] = [(r.query_keyframe, r.match_keyframe, r.frame_index) for r in accepted]
+    res.update(detection_stats(gt, rec.kf_frame, [(r.query_keyframe, r.match_keyframe) for r in accepted],
+                               cfg.loop.min_keyframe_gap, cfg.loop.loop_cooldown))
     return res
 
 

@@ -205,7 +205,8 @@ def test_thin_scan_keeps_one_point_per_voxel():
 
 def test_loop_contradicting_the_odometry_is_rejected():
     """A verified edge that would move the query keyframe far more than odometry can drift is a repeated place."""
-    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig())  # vocabularies unused here
+    # vocabularies unused here; the straight street's "loop" edges are 45 m long, allowed here (see the next test)
+    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig(max_view_m=60.0))
     empty = np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
     poses = [se3.exp(np.array([0.0, 0.0, 5.0 * i, 0.0, 0.0, 0.0])) for i in range(10)]  # 5 m apart, straight on
     for i, T in enumerate(poses):
@@ -218,3 +219,26 @@ def test_loop_contradicting_the_odometry_is_rejected():
     assert "45.0 m" in reason and "repeated place" in reason
     closer.cfg = LoopConfig(max_drift_fraction=0)  # the gate switched off
     assert closer._implausible(9, 0, np.eye(4)) == ""
+    closer.cfg = LoopConfig()
+    assert "45 m long" in closer._implausible(9, 0, truth)  # further apart than two views of one place can be
+
+
+def test_candidates_the_odometry_puts_far_away_are_refused_before_verification():
+    """On a 40-keyframe street, keyframe 39 is 195 m from keyframe 0 by the odometry: no drift bound (21.5 m) plus
+    view distance (40 m) makes that a revisit, so it is refused without a PnP/PnL; a lap back near the start is not;
+    and a refused candidate is reported with its reason (the soak counts these)."""
+    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig())
+    empty = np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
+    street = [se3.exp(np.array([0.0, 0.0, 5.0 * i, 0.0, 0.0, 0.0])) for i in range(40)]
+    for i, T in enumerate(street):
+        closer._store(LoopKeyframe(i, T, *empty))
+    reason = closer._too_far(39, 0)
+    assert "195 m away" in reason and "repeated place" in reason
+    assert closer._too_far(8, 0) == ""  # 40 m apart: within 6 m of drift + 40 m of view
+    assert closer._too_far(10, 0) != ""  # 50 m apart: more than 7 m of drift + 40 m of view
+    lap = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig())
+    ring = [se3.exp(np.array([30 * np.sin(a), 0.0, 30 * (1 - np.cos(a)), 0.0, a, 0.0]))
+            for a in np.linspace(0, 2 * np.pi, 40)[:-1]]
+    for i, T in enumerate(ring):
+        lap._store(LoopKeyframe(i, T, *empty))
+    assert lap._too_far(38, 0) == ""  # 190 m driven, back within 5 m of the start

@@ -152,3 +152,28 @@ def test_a_result_far_from_the_pose_graph_is_rejected():
     assert global_ba.implausible(pg, dataclasses.replace(res, T_world_cam=moved), LoopConfig(), 5.0) == ""
     worse = dataclasses.replace(res, T_world_cam=pg, final_cost=res.initial_cost * 2)
     assert "cost rose" in global_ba.implausible(pg, worse, LoopConfig())
+
+
+def test_a_point_budget_bounds_the_problem_and_keeps_every_keyframe_constrained():
+    """With a budget of a quarter of the points, the problem holds at most that many, the same share for every
+    keyframe (each observes points), and the adjustment still closes the loop's drift."""
+    gt, chain, pg, edges, obs, depth, X, positions = _scene()
+    full, _ = global_ba.build_problem(K, pg, edges, obs, positions, depth, LoopConfig(), BackendConfig())
+    budget = full.points.shape[0] // 4
+    cfg = LoopConfig(global_ba_max_points=budget)
+    problem, pt_ids = global_ba.build_problem(K, pg, edges, obs, positions, depth, cfg, BackendConfig())
+    assert budget - len(gt) <= len(pt_ids) <= budget
+    per_kf = np.bincount(problem.pt_kf, minlength=len(gt))
+    assert per_kf.min() >= 4, per_kf  # every keyframe still observes points of the problem (measured 5-21)
+    res = global_ba.optimize(problem, BackendConfig(), cfg, True, 0.54)
+    assert _ate(res.T_world_cam, gt) < _ate(pg, gt) / 3
+
+
+def test_point_budget_is_the_same_share_a_keyframe():
+    # keyframe k first observes points 10k..10k+9; point p has p % 10 + 2 views
+    point = np.concatenate([np.repeat(10 * k + j, j + 2) for k in range(5) for j in range(10)])
+    keyframe = np.concatenate([np.arange(j + 2) + k for k in range(5) for j in range(10)])
+    kept = global_ba.point_budget(point, keyframe, 20)
+    assert len(kept) == 20
+    assert sorted(kept % 10) == sorted([9, 8, 7, 6] * 5)  # the four most-viewed of each keyframe
+    assert len(global_ba.point_budget(point, keyframe, 0)) == 50  # 0: no budget

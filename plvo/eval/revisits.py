@@ -1,10 +1,14 @@
-"""Ground-truth revisits of a keyframe trajectory: what loop detection should find (issue 9's precision/recall)."""
+"""Ground-truth revisits of a keyframe trajectory: what loop detection should find, and how well it did.
+
+A revisit: a keyframe within REVISIT_M metres and REVISIT_DEG degrees (ground truth) of a keyframe more than `gap`
+keyframes back. Precision: accepted loops joining a true revisit / accepted loops. Recall: revisit passages (runs of
+consecutive revisiting keyframes) with at least one accepted true loop / passages; and revisiting keyframes within
+the closer's cooldown after an accepted true loop / revisiting keyframes.
+"""
 
 from __future__ import annotations
 
 import numpy as np
-
-from plvo.geometry import se3
 
 REVISIT_M, REVISIT_DEG = 5.0, 30.0
 
@@ -13,11 +17,40 @@ def revisits(gt: np.ndarray, kf_frame: dict[int, int], gap: int, max_m: float = 
              max_deg: float = REVISIT_DEG) -> dict[int, set[int]]:
     """(N,4,4) ground-truth poses by frame, keyframe id -> frame -> {keyframe id: ids of keyframes more than `gap`
     back that it revisits}: within max_m metres and max_deg degrees of it."""
+    ids = np.array(sorted(kf_frame), np.int64)
+    if len(ids) == 0:
+        return {}
+    T = np.asarray(gt, float)[[kf_frame[int(k)] for k in ids]]
+    pos, R = T[:, :3, 3], T[:, :3, :3]
+    cos_max = np.cos(np.radians(max_deg))
     out: dict[int, set[int]] = {}
-    for q, fq in kf_frame.items():
-        for m, fm in kf_frame.items():
-            if m < q - gap:
-                dT = se3.inv(gt[fm]) @ gt[fq]
-                if np.linalg.norm(dT[:3, 3]) < max_m and np.degrees(se3.rotation_angle(dT)) < max_deg:
-                    out.setdefault(q, set()).add(m)
+    for n, q in enumerate(ids):
+        older = np.flatnonzero(ids < q - gap)
+        if not len(older):
+            continue
+        near = older[np.linalg.norm(pos[older] - pos[n], axis=1) < max_m]
+        if not len(near):
+            continue
+        # rotation angle of R_m^T R_q from its trace: cos = (tr - 1) / 2
+        tr = np.einsum("kij,ij->k", R[near], R[n])
+        near = near[(tr - 1.0) / 2.0 > cos_max]
+        if len(near):
+            out[int(q)] = set(ids[near].tolist())
     return out
+
+
+def detection_stats(gt: np.ndarray, kf_frame: dict[int, int], accepted: list[tuple[int, int]], gap: int,
+                    cooldown: int) -> dict[str, int]:
+    """Ground truth (N,4,4) by frame, keyframe id -> frame, accepted loops (query, match) -> counts for precision
+    and recall (see the module doc)."""
+    truth = revisits(gt, kf_frame, gap)
+    true = [(q, m) for q, m in accepted if m in truth.get(q, set())]
+    qs = sorted(truth)
+    passages: list[list[int]] = [[q] for q in qs[:1]]
+    for q in qs[1:]:
+        (passages[-1].append(q) if q == passages[-1][-1] + 1 else passages.append([q]))
+    found = {q for q, _ in true}
+    covered = [q for q in qs if any(0 <= q - a <= cooldown for a in found)]
+    return {"n_accepted": len(accepted), "n_true": len(true), "n_revisit_keyframes": len(qs),
+            "n_passages": len(passages), "n_passages_found": sum(1 for p in passages if found & set(p)),
+            "n_revisit_keyframes_covered": len(covered)}

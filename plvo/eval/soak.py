@@ -3,8 +3,9 @@
 The run is plvo-viz's: the config as given (the defaults: concurrent workers), frames read from disk one ahead, a
 recording on (the recorder the caller hands in). Measured per window of `window` frames: frames a second, resident
 memory of this process and of its worker processes, the recording's size on disk, and the error of the frames'
-poses as the tracker reported them then (position, against the ground truth, no alignment). Per run: every loop the
-verification accepted (applied, or refused by the drift check) with the true distance between its keyframes, what
+poses as the tracker reported them then (position, against the ground truth, no alignment). Per run: every loop
+accepted and every candidate refused by the odometry check, with the true distance between their keyframes, the
+loops' precision and recall against the ground truth's revisits, what
 each applied correction moved and the error left after it, the global corrections and their times, the optimisations
 discarded, the tracking losses, and the final trajectory's figures (ATE, devkit, short segments).
 """
@@ -31,19 +32,25 @@ SCHEMA = "plvo.soak/1"
 REPEATED_PLACE = "repeated place"  # how the closer's drift check words a refusal (plvo.loop.closer)
 
 
-def tree_rss_mb() -> tuple[float, float]:
-    """(this process, this process and all its children) resident memory in MB."""
+def tree_rss_mb() -> tuple[float, float, float | None]:
+    """(this process's RSS, the RSS of it and all its children, their PSS) in MB.
+
+    The RSS sum counts the pages the processes share (the libraries every worker maps, copy-on-write) once for
+    each; the PSS sum (Linux) splits each shared page among its sharers, so it is what the tree takes of the
+    machine's memory. None where /proc/PID/smaps_rollup cannot be read."""
     import psutil
 
     me = psutil.Process(os.getpid())
+    procs = [me, *me.children(recursive=True)]
     own = me.memory_info().rss
-    total = own
-    for child in me.children(recursive=True):
+    total, pss = 0, 0
+    for p in procs:
         try:
-            total += child.memory_info().rss
-        except psutil.Error:
-            pass
-    return own / 2**20, total / 2**20
+            total += p.memory_info().rss
+            pss = None if pss is None else pss + p.memory_full_info().pss
+        except (psutil.Error, AttributeError):
+            pss = None if p is me else pss
+    return own / 2**20, total / 2**20, None if pss is None else pss / 2**20
 
 
 @dataclass
@@ -86,10 +93,10 @@ class SoakTap:
                 self.sample()
 
     def sample(self) -> None:
-        own, total = tree_rss_mb()
+        own, total, pss = tree_rss_mb()
         size = self.rrd.stat().st_size if self.rrd is not None and self.rrd.exists() else 0
         self.samples.append({"frames": len(self.frames), "rss_mb": round(own, 1), "rss_tree_mb": round(total, 1),
-                             "rrd_mb": round(size / 2**20, 2)})
+                             "pss_tree_mb": None if pss is None else round(pss, 1), "rrd_mb": round(size / 2**20, 2)})
 
     def close(self) -> None:
         self.inner.close()
@@ -146,6 +153,7 @@ def _report(dataset, system, tap: SoakTap, poses: np.ndarray, t0: float, wall: f
         "corrections": [_with_errors(c, tap, gt, index) for c in system.corrections],
         "loop_stats": dict(system.loop_stats),
         "loops": _loops(tap, gt, index) if gt is not None else None,
+        "loop_detection": _detection(tap, gt, index, system.config) if gt is not None else None,
         "timings": system.timing_summary(),
     }
     if gt is not None:
@@ -195,12 +203,13 @@ def _rss_at(samples: list[dict], frames: tuple[int, ...]) -> dict[str, dict]:
         near = [s for s in samples if s["frames"] <= f]
         if near:
             out[str(f)] = {"rss_mb": near[-1]["rss_mb"], "rss_tree_mb": near[-1]["rss_tree_mb"],
-                           "at_frames": near[-1]["frames"]}
+                           "pss_tree_mb": near[-1].get("pss_tree_mb"), "at_frames": near[-1]["frames"]}
     return out
 
 
 def _loops(tap: SoakTap, gt: np.ndarray, index: dict[int, int]) -> list[dict]:
-    """Every candidate that passed the geometric verification: applied, or refused by the drift check."""
+    """Every loop accepted and every candidate refused by the odometry check (before or after the geometric
+    checks: "repeated place"), with the true distance between their keyframes."""
     out = []
     for r in tap.loops:
         refused = (not r.accepted) and REPEATED_PLACE in (r.reason or "")
@@ -211,6 +220,22 @@ def _loops(tap: SoakTap, gt: np.ndarray, index: dict[int, int]) -> list[dict]:
         if fq in index and fm in index:
             d = float(np.linalg.norm(gt[index[fq]][:3, 3] - gt[index[fm]][:3, 3]))
         out.append({"query_keyframe": r.query_keyframe, "match_keyframe": r.match_keyframe, "query_frame": fq,
-                    "match_frame": fm, "applied": bool(r.accepted), "true_distance_m": d,
+                    "match_frame": fm, "accepted": bool(r.accepted), "true_distance_m": d,
                     "n_inliers": r.n_inliers, "reason": r.reason})
     return out
+
+
+def _detection(tap: SoakTap, gt: np.ndarray, index: dict[int, int], config: SystemConfig) -> dict:
+    """Precision and recall of the accepted loops against the ground truth's revisits (plvo.eval.revisits)."""
+    from plvo.eval.revisits import detection_stats
+
+    kf_frame = {k: index[f] for k, f in tap.kf_frame.items() if f in index}
+    accepted = [(r.query_keyframe, r.match_keyframe) for r in tap.loops if r.accepted]
+    stats = detection_stats(gt, kf_frame, accepted, config.loop.min_keyframe_gap, config.loop.loop_cooldown)
+    refused = [r for r in tap.loops if not r.accepted and REPEATED_PLACE in (r.reason or "")]
+    stats["n_refused_by_odometry"] = len(refused)
+    stats["n_refused_after_geometry"] = sum(1 for r in refused if r.n_inliers > 0)
+    stats["precision"] = round(stats["n_true"] / stats["n_accepted"], 3) if stats["n_accepted"] else None
+    stats["recall_passages"] = (round(stats["n_passages_found"] / stats["n_passages"], 3) if stats["n_passages"]
+                                else None)
+    return stats

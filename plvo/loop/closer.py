@@ -151,6 +151,8 @@ class LoopCloser:
         self._ids: list[int] = []
         self._poses: dict[int, np.ndarray] = {}
         self._odom: dict[int, np.ndarray] = {}  # kf id -> T_prev_kf measured when it arrived
+        self._index: dict[int, int] = {}  # kf id -> arrival index
+        self._driven: list[float] = []  # metres of odometry from the first keyframe to each, by arrival index
         self.edges: list[LoopEdge] = []
         self._last_loop_at = -10**9  # arrival index of the last accepted loop
 
@@ -192,9 +194,13 @@ class LoopCloser:
                           1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))
 
     def _store(self, kf: LoopKeyframe) -> None:
+        step = 0.0
         if self._ids:
             prev = self._ids[-1]
             self._odom[kf.kf_id] = se3.inv(self._poses[prev]) @ kf.T_world_cam
+            step = float(np.linalg.norm(self._odom[kf.kf_id][:3, 3]))
+        self._index[kf.kf_id] = len(self._ids)
+        self._driven.append((self._driven[-1] if self._driven else 0.0) + step)
         scan = None if kf.scan is None or not self.cfg.use_registration else compact_scan(kf.scan, self.reg_cfg)
         self._kfs[kf.kf_id] = LoopKeyframe(kf.kf_id, np.array(kf.T_world_cam, float), kf.keypoints,
                                            kf.descriptors, kf.points_cam, kf.segments, kf.line_descriptors,
@@ -207,16 +213,21 @@ class LoopCloser:
             return (), None, (det.reason,) if det.reason else ()
         since = len(self._ids) - 1 - self._last_loop_at
         if since <= self.cfg.loop_cooldown:
-            return (), None, (f"{since} keyframes since the last loop (cooldown {self.cfg.loop_cooldown})",)
+            why = f"{since} keyframes since the last loop (cooldown {self.cfg.loop_cooldown})"
+            log.info("loop candidates %s for keyframe %d not verified: %s", list(map(int, det.to_verify)), kf.kf_id,
+                     why)
+            return (), None, (why,)
         query = self._kfs[kf.kf_id]
         checks, rejections = [], []
         for cid in det.to_verify:
-            v = verify(query, self._kfs[cid], self.K, self.cfg, self.T_cam_velo, self.reg_cfg)
-            if v.accepted:
-                why = self._implausible(kf.kf_id, cid, v.T_cand_query)
-                if why:
-                    log.info("loop candidate %d for keyframe %d rejected: %s", cid, kf.kf_id, why)
-                    v = dataclasses.replace(v, accepted=False, reason=why)
+            far = self._too_far(kf.kf_id, cid)
+            if far:  # decided by the odometry alone: not worth a PnP/PnL and a registration
+                log.info("loop candidate %d for keyframe %d rejected: %s", cid, kf.kf_id, far)
+                checks.append(Verification(kf.kf_id, cid, False, np.eye(4), 0, 0, 0, 0, False, 0.0, far, 0.0))
+                rejections.append(f"candidate {cid}: {far}")
+                continue
+            v = verify(query, self._kfs[cid], self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
+                       against_odometry=lambda T, c=cid: self._implausible(kf.kf_id, c, T))
             checks.append(v)
             if v.accepted:
                 edge = LoopEdge(kf.kf_id, cid, v.T_cand_query, v.n_point_inliers + v.n_line_inliers, v.registered)
@@ -226,15 +237,34 @@ class LoopCloser:
             rejections.append(f"candidate {cid}: {v.reason}")
         return tuple(checks), None, tuple(rejections)
 
+    def _drift_limit(self, query_id: int, match_id: int) -> tuple[float, float]:
+        """(metres of odometry between the two keyframes, the drift they may have accumulated)."""
+        driven = self._driven[self._index[query_id]] - self._driven[self._index[match_id]]
+        return driven, self.cfg.max_drift_fraction * driven + self.cfg.max_drift_floor_m
+
+    def _too_far(self, query_id: int, match_id: int) -> str:
+        """Why the odometry alone rules the candidate out, or "": the keyframes are estimated further apart than the
+        drift since then plus the distance at which two keyframes can still see one place (loop.max_view_m), so
+        any measured loop edge would fail `_implausible` (triangle inequality; it also bounds the edge's length)."""
+        if self.cfg.max_drift_fraction <= 0:
+            return ""
+        apart = float(np.linalg.norm(self._poses[query_id][:3, 3] - self._poses[match_id][:3, 3]))
+        driven, limit = self._drift_limit(query_id, match_id)
+        if apart <= limit + self.cfg.max_view_m:
+            return ""
+        return (f"{apart:.0f} m away by the odometry after {driven:.0f} m driven (at most {limit:.1f} m of drift "
+                f"+ {self.cfg.max_view_m:.0f} m of view expected): a repeated place, not a revisit")
+
     def _implausible(self, query_id: int, match_id: int, T_match_query: np.ndarray) -> str:
         """Why a verified edge contradicts the odometry (a repeated place, not a revisit), or "" when it does not."""
         if self.cfg.max_drift_fraction <= 0:
             return ""
+        length = float(np.linalg.norm(T_match_query[:3, 3]))
+        if length > self.cfg.max_view_m:
+            return f"the loop edge is {length:.0f} m long (two views of one place are at most {self.cfg.max_view_m:.0f} m apart)"
         T_est = se3.inv(self._poses[match_id]) @ self._poses[query_id]
         jump = float(np.linalg.norm((se3.inv(T_est) @ T_match_query)[:3, 3]))
-        n0, n1 = self._ids.index(match_id), self._ids.index(query_id)
-        driven = sum(float(np.linalg.norm(self._odom[self._ids[n]][:3, 3])) for n in range(n0 + 1, n1 + 1))
-        limit = self.cfg.max_drift_fraction * driven + self.cfg.max_drift_floor_m
+        driven, limit = self._drift_limit(query_id, match_id)
         if jump <= limit:
             return ""
         return (f"the loop would move the keyframe by {jump:.1f} m after {driven:.0f} m of odometry (at most "

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -128,8 +129,10 @@ def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str, counts=(0,
 
 
 def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConfig | None = None,
-           T_cam_velo: np.ndarray | None = None, reg_cfg: RegistrationConfig | None = None) -> Verification:
-    """Check candidate `cand` for `query` with (3,3) K; the accepted edge is T_cand_query (camera Q -> camera C)."""
+           T_cam_velo: np.ndarray | None = None, reg_cfg: RegistrationConfig | None = None,
+           against_odometry: Callable[[np.ndarray], str] | None = None) -> Verification:
+    """Check candidate `cand` for `query` with (3,3) K; the accepted edge is T_cand_query (camera Q -> camera C).
+    against_odometry: the last check, T_cand_query -> why it contradicts the odometry, or "" (the loop closer's)."""
     cfg = cfg or LoopConfig()
     t0 = time.perf_counter()
     pm = match_binary(query.descriptors, cand.descriptors, cfg.ratio, cfg.point_max_hamming)
@@ -159,6 +162,9 @@ def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConf
         if err:
             return _reject(query, cand, t0, err, counts)
         registered = True
+    why = against_odometry(T) if against_odometry is not None else ""
+    if why:
+        return _reject(query, cand, t0, why, counts)
     msg = f"{n_pi}/{n_pm} point and {n_li}/{n_lm} line inliers" + (f", scan fitness {fitness:.2f}" if registered
                                                                     else ", no scan registration")
     log.info("loop %d -> %d accepted: %s", query.kf_id, cand.kf_id, msg)

@@ -150,9 +150,10 @@ class LoopCore:
                            d.measurement)
         problem, pt_ids = global_ba.build_problem(self.K, poses, self._edges(ids, d.edges), obs, d.positions, depth,
                                                    self.cfg.loop, self.cfg.backend)
-        # It does the work of the ones it superseded too: as many iterations as they would have had together.
+        # It does the work of the one it superseded too: twice the iterations (not more, so that its cost stays
+        # bounded when several loops close in a row).
         loop_cfg = dataclasses.replace(self.cfg.loop,
-                                       global_ba_iterations=self.cfg.loop.global_ba_iterations * (1 + self._skipped))
+                                       global_ba_iterations=self.cfg.loop.global_ba_iterations * (1 + min(self._skipped, 1)))
         self._skipped = 0
         res = global_ba.optimize(problem, self.cfg.backend, loop_cfg, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
