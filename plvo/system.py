@@ -109,6 +109,7 @@ class System:
         # The largest pose-graph move of the loops since the last applied global BA: a global BA that supersedes
         # skipped ones refines all of their corrections, and is judged against the largest (global_ba.implausible).
         self._pose_graph_move_m = 0.0
+        self._edge_rows = (np.zeros((0, 2), int), np.zeros(0, int), np.zeros(0))  # the graph's edges so far (_graph)
 
     @property
     def map(self):
@@ -327,10 +328,14 @@ class System:
     def _graph(self, frame_index: int, scale: float = 1.0) -> GraphResult:
         """The keyframe graph as the map has it now: poses, odometry (registration) and loop edges, zeta."""
         with self.map.lock:
-            poses, edges = self.map.poses(), list(self.map.edges)
-        pairs = np.array([(e.i, e.j) for e in edges], int).reshape(-1, 2)
-        kinds = np.array([e.kind for e in edges], int)
-        zeta = np.array([np.nan if e.kind == EDGE_LOOP else e.zeta for e in edges], float)
+            poses, new = self.map.poses(), self.map.edges[len(self._edge_rows[0]):]
+        # The map only appends edges: their arrays grow by what is new instead of being rebuilt each keyframe.
+        pairs, kinds, zeta = self._edge_rows
+        if new:
+            pairs = np.r_[pairs, np.array([(e.i, e.j) for e in new], int).reshape(-1, 2)]
+            kinds = np.r_[kinds, np.array([e.kind for e in new], int)]
+            zeta = np.r_[zeta, np.array([np.nan if e.kind == EDGE_LOOP else e.zeta for e in new], float)]
+            self._edge_rows = (pairs, kinds, zeta)
         return GraphResult(frame_index, np.arange(len(poses)), poses, pairs, kinds, zeta, scale)
 
     def finish(self) -> None:

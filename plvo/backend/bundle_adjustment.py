@@ -24,7 +24,7 @@ import numpy as np
 from plvo.backend import factors
 from plvo.backend.factors import DEFAULT_STEREO_BASELINE_M, usable_landmarks
 from plvo.backend.problem import BAProblem, BAResult
-from plvo.backend.relpose import inv_batch, relpose_block
+from plvo.backend.relpose import relpose_block
 from plvo.config import BackendConfig
 from plvo.geometry import se3
 from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch
@@ -335,7 +335,7 @@ def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.nd
         if not len(sel):
             continue
         k, j = kf[sel], idx[sel]
-        M = inv_batch(T_cw_new[k]) @ T_cw_old[k]  # world -> world: the keyframe's move
+        M = se3.inv_batch(T_cw_new[k]) @ T_cw_old[k]  # world -> world: the keyframe's move
         if is_point:
             pts[j] = np.einsum("nij,nj->ni", M[:, :3, :3], pts[j]) + M[:, :3, 3]
         else:

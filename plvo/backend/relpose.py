@@ -13,16 +13,6 @@ from plvo.geometry import se3
 from plvo.geometry.lines import hat_batch
 
 
-def inv_batch(T: np.ndarray) -> np.ndarray:
-    """(N,4,4) rigid transforms -> (N,4,4) inverses."""
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = Rt
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
-
-
 def log_batch(T: np.ndarray) -> np.ndarray:
     """(N,4,4) poses -> (N,6) tangents (rho, phi), as se3.log row by row."""
     R = T[:, :3, :3]
@@ -73,9 +63,9 @@ def relpose_block(
     is zeta diag(weight) (weight in (rho, phi) order, default ones: the paper's zeta I).
     With T_cw <- exp(xi) T_cw: dr/dxi_i = Jr^-1(r) Ad(T_i_j^-1), dr/dxi_j = -Jr^-1(r), Jr^-1(r) ~ I + ad(r)/2.
     """
-    T_ij = T_cw_i @ inv_batch(T_cw_j)
-    r = log_batch(inv_batch(T_ij_meas) @ T_ij)
-    Ji = adjoint_batch(inv_batch(T_ij))
+    T_ij = T_cw_i @ se3.inv_batch(T_cw_j)
+    r = log_batch(se3.inv_batch(T_ij_meas) @ T_ij)
+    Ji = adjoint_batch(se3.inv_batch(T_ij))
     Jr_inv = np.eye(6) + 0.5 * _ad(r)
     w = np.ones(6) if weight is None else np.asarray(weight, dtype=float)
     s = np.sqrt(np.asarray(zeta, dtype=float)[:, None] * w[None, :])  # (N,6) per-row whitening

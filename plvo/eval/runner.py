@@ -145,34 +145,15 @@ def _die_with_parent() -> None:
 def _execute_ray(
     specs: Sequence[RunSpec], out_dir: str, address: str, workers: int, notify: Callable[[TaskResult], None]
 ) -> list[TaskResult]:
-    try:
-        import ray
-    except ImportError:
-        raise PlvoError("--ray: the ray package is not installed (pip install 'ray[default]')") from None
-    started = False
-    if not ray.is_initialized():
-        if address == "local":
-            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
-        started = True
-    try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(execute_task)
-        pending = {remote.remote(spec): k for k, spec in enumerate(specs)}
-        results: dict[int, TaskResult] = {}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            k = pending.pop(ready[0])
-            try:
-                output = ray.get(ready[0])
-            except Exception as exc:  # a worker died or the task could not be shipped
-                output = TaskOutput(specs[k], "failed", error=f"ray: {type(exc).__name__}: {exc}")
-            results[k] = write_task(output, out_dir)
-            notify(results[k])
-        return [results[k] for k in range(len(specs))]
-    finally:
-        if started:
-            ray.shutdown()
+    from plvo.ray_pool import ray_unordered
+
+    results: dict[int, TaskResult] = {}
+    for k, output, exc in ray_unordered(execute_task, [(spec,) for spec in specs], address, workers, PlvoError):
+        if exc is not None:
+            output = TaskOutput(specs[k], "failed", error=f"ray: {type(exc).__name__}: {exc}")
+        results[k] = write_task(output, out_dir)
+        notify(results[k])
+    return [results[k] for k in range(len(specs))]
 
 
 # ---------------------------------------------------------------- building specs

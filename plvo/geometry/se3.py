@@ -99,6 +99,17 @@ def inv(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def inv_batch(T: np.ndarray) -> np.ndarray:
+    """(N,4,4) rigid transforms -> (N,4,4) inverses."""
+    T = np.asarray(T, float)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def compose(*Ts: np.ndarray) -> np.ndarray:
     """T_a_b, T_b_c, ... -> T_a_z."""
     out = np.eye(4)

@@ -31,8 +31,8 @@ import numpy as np
 
 from plvo.backend.factors import optimize_gtsam
 from plvo.backend.problem import BAProblem, BAResult
-from plvo.backend.relpose import inv_batch
 from plvo.config import BackendConfig, LoopConfig
+from plvo.geometry import se3
 from plvo.geometry.camera import project
 from plvo.tracking.map import Observations
 
@@ -105,7 +105,7 @@ def pose_graph_zeta(cfg: LoopConfig, backend_cfg: BackendConfig) -> float:
 def reprojection_errors(K: np.ndarray, poses: np.ndarray, points: np.ndarray, kf: np.ndarray,
                         uv: np.ndarray) -> np.ndarray:
     """(K,4,4) T_world_cam, (N,3) world points, (N,) keyframe index, (N,2) px -> (N,) pixel errors (inf behind)."""
-    T_cw = inv_batch(np.asarray(poses, float))[np.asarray(kf, int)]
+    T_cw = se3.inv_batch(np.asarray(poses, float))[np.asarray(kf, int)]
     proj, _ = project(np.asarray(K, float), np.einsum("nij,nj->ni", T_cw[:, :3, :3], points) + T_cw[:, :3, 3])
     err = np.linalg.norm(proj - uv, axis=1)
     return np.where(np.isfinite(err), err, np.inf)

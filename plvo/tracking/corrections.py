@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plvo.backend.relpose import inv_batch
 from plvo.geometry import se3
 
 BACKEND, LOOP, GLOBAL_BA = "back end", "loop", "global BA"
@@ -128,12 +127,12 @@ def corrected_poses(correction: MapCorrection, T_current: np.ndarray) -> tuple[n
         return new, eye, np.zeros((0, 4, 4))
     ok = ids < n
     ids = ids[ok]
-    M = T_current[ids] @ inv_batch(np.asarray(correction.T_before, float)[ok])
+    M = T_current[ids] @ se3.inv_batch(np.asarray(correction.T_before, float)[ok])
     new[ids] = M @ np.asarray(correction.T_after, float)[ok]
     newest = int(ids.max())
     carry = new[newest] @ se3.inv(T_current[newest])
     new[newest + 1:] = carry @ T_current[newest + 1:]
-    D = new @ inv_batch(T_current)
+    D = new @ se3.inv_batch(T_current)
     return new, D, M
 
 

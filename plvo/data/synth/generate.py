@@ -263,14 +263,21 @@ def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed:
     settings = SynthSettings(n_frames, seed, speed_mps, bool(loop), bool(stops), exposure_change, bool(write_depth))
     out_root = Path(out_root)
     check_request(out_root, sequence, settings, overwrite)
+    write_staged(out_root, sequence, ".synth-", lambda stage: write_sequence(stage, sequence, settings, progress))
+    return out_root
+
+
+def write_staged(out_root: Path, sequence: str, prefix: str, write: Callable[[Path], None]) -> None:
+    """Run write(stage) into a staging folder beside out_root/sequences and move sequence NN and its poses file in
+    when it returns: a sequence folder is complete or absent, and a replaced one is removed only then."""
     target = out_root / "sequences" / sequence
     out_root.mkdir(parents=True, exist_ok=True)
-    remove_stale_stages(out_root, f".synth-{sequence}-")
+    remove_stale_stages(out_root, f"{prefix}{sequence}-")
     # The pid in the name: a stage left by a killed run (SIGKILL, power loss) is removed by the next run once its
     # process is gone; SIGTERM and Ctrl-C reach the `finally` below (plvo_app.guards).
-    stage = Path(tempfile.mkdtemp(prefix=f".synth-{sequence}-{os.getpid()}-", dir=out_root))
+    stage = Path(tempfile.mkdtemp(prefix=f"{prefix}{sequence}-{os.getpid()}-", dir=out_root))
     try:
-        write_sequence(stage, sequence, settings, progress)
+        write(stage)
         (out_root / "sequences").mkdir(exist_ok=True)
         (out_root / "poses").mkdir(exist_ok=True)
         if target.exists():
@@ -279,4 +286,3 @@ def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed:
         (stage / "sequences" / sequence).rename(target)  # last: a sequence directory is always complete
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-    return out_root

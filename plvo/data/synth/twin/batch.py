@@ -178,35 +178,17 @@ def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, 
 
 
 def _ray(jobs, todo, frames, root, address, workers, progress, total, notify) -> dict[int, TwinDone]:
-    try:
-        import ray
-    except ImportError:
-        raise SynthError("--ray: the ray package is not installed (pip install 'ray[default]')") from None
-    started = False
-    if not ray.is_initialized():
-        if address == "local":
-            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
-        started = True
+    from plvo.ray_pool import ray_unordered
+
     out: dict[int, TwinDone] = {}
-    try:
-        # Each Ray worker writes into the same root: a cluster needs it on a shared file system.
-        remote = ray.remote(num_cpus=1, max_retries=0)(_run_local)
-        pending = {remote.remote(jobs[k], root): k for k in todo}
-        done_frames = 0
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            k = pending.pop(ready[0])
-            try:
-                out[k] = ray.get(ready[0])
-            except Exception as exc:
-                out[k] = TwinDone(jobs[k].sequence, 0, 0.0, False, f"ray: {type(exc).__name__}: {exc}")
-            done_frames += frames[k]
-            if progress:
-                progress(done_frames, total)
-            notify(out[k])
-    finally:
-        if started:
-            ray.shutdown()
+    done_frames = 0
+    # Each Ray worker writes into the same root: a cluster needs it on a shared file system.
+    for n, result, exc in ray_unordered(_run_local, [(jobs[k], root) for k in todo], address, workers, SynthError):
+        k = todo[n]
+        out[k] = result if exc is None else TwinDone(jobs[k].sequence, 0, 0.0, False,
+                                                     f"ray: {type(exc).__name__}: {exc}")
+        done_frames += frames[k]
+        if progress:
+            progress(done_frames, total)
+        notify(out[k])
     return out

@@ -16,10 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import re
-import shutil
-import tempfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -29,6 +26,7 @@ import cv2
 import numpy as np
 
 from plvo.data.synth import sensors
+from plvo.data.synth.generate import write_staged
 from plvo.data.synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE
 from plvo.data.synth.textures import build_atlas
 from plvo.data.synth.twin.follow import FollowedPath, PoseInterpolator, load_followed
@@ -232,34 +230,10 @@ def check_twin_request(out_root: Path, sequence: str, settings: TwinSettings, ov
         raise SynthError(f"{target}: sequence {sequence} exists already (pass --overwrite)")
 
 
-def _remove_stale_stages(out_root: Path, sequence: str) -> None:
-    """Staging folders of twin NN left by a run that was killed (its process is gone)."""
-    for stage in out_root.glob(f".twin-{sequence}-*-*"):
-        try:
-            os.kill(int(stage.name.split("-")[2]), 0)
-        except (ValueError, IndexError, ProcessLookupError):
-            shutil.rmtree(stage, ignore_errors=True)
-        except PermissionError:
-            pass
-
-
 def generate_twin(out_root, sequence: str, settings: TwinSettings,
                   progress: Callable[[int, int], None] | None = None, overwrite: bool = False) -> Path:
     """Write twin NN under out_root (KITTI odometry layout), staged beside it and renamed in when complete."""
     out_root = Path(out_root)
     check_twin_request(out_root, sequence, settings, overwrite)
-    out_root.mkdir(parents=True, exist_ok=True)
-    _remove_stale_stages(out_root, sequence)
-    stage = Path(tempfile.mkdtemp(prefix=f".twin-{sequence}-{os.getpid()}-", dir=out_root))
-    target = out_root / "sequences" / sequence
-    try:
-        write_twin(stage, sequence, settings, progress)
-        (out_root / "sequences").mkdir(exist_ok=True)
-        (out_root / "poses").mkdir(exist_ok=True)
-        if target.exists():
-            target.rename(stage / "old-sequence")
-        os.replace(stage / "poses" / f"{sequence}.txt", out_root / "poses" / f"{sequence}.txt")
-        (stage / "sequences" / sequence).rename(target)  # last: a sequence folder is always complete
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+    write_staged(out_root, sequence, ".twin-", lambda stage: write_twin(stage, sequence, settings, progress))
     return out_root
