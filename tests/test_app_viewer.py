@@ -144,11 +144,30 @@ def test_live_recorder_follows_the_run():
         viewer.close()
 
 
+# In the page: from the key event (its own timestamp, so the time it waited for a busy main thread counts) to the
+# start of the render frame after the one in which the new frame's status reached the DOM. The status comes in one
+# websocket window with the scene it describes and is applied in the render frame that draws that scene, so the next
+# frame starts once that one was handed to the compositor: what a user sees. Playwright's own round trips (the key
+# press waits for the page to acknowledge it, a predicate is polled on timers that wait behind render frames) are
+# not: they took ~170 ms of ~450 on a loaded 2-core machine, and are printed apart.
+_STEP_PROBE = """() => {
+    const shown = () => (document.body.textContent.match(/\\((\\d+)\\/4541\\)/) || [])[1];
+    window.__lat = []; window.__shown = null;
+    let down = null, last = shown();
+    document.addEventListener('keydown', e => { down = e.timeStamp; }, true);
+    new MutationObserver(() => {
+        const now = shown();
+        if (!now || now === last) return;
+        last = now;
+        requestAnimationFrame(() => { window.__lat.push(performance.now() - down); window.__shown = +now; });
+    }).observe(document.body, {subtree: true, childList: true, characterData: true});
+}"""
+
+
 def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
     """A 4541-frame replay (a whole KITTI 00's length) opens from its index, and a frame change reaches the page.
-    Measured: the server's share (slider update to scene sent) and the time from a key press on the slider to the
-    new frame's status in the page. The issue asks 100 ms on screen; in headless Chromium the browser renders
-    in software, so the page bound below only catches a viewer that decodes or re-sends a whole run per frame."""
+    Measured: the server's share (slider update to scene sent), the time in the page from a key press on the slider
+    to the new frame on screen (see _STEP_PROBE), and the whole round trip through playwright."""
     from app_fakes import long_pose, write_long_recording
 
     path = tmp_path_factory.mktemp("long") / "long.rrd"
@@ -173,22 +192,24 @@ def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
         page.get_by_text("Connected").wait_for(timeout=30000)
         v.slider.value = 3000
         page.get_by_text("(3001/4541)").wait_for(timeout=20000)
+        page.evaluate(_STEP_PROBE)
         page.get_by_role("slider").first.focus()
         server_s.clear()
         times = []
         for step in range(1, 13):  # frame by frame: a new image and pose each time, a new scan every 6
             t0 = time.perf_counter()
             page.keyboard.press("ArrowRight")
-            page.wait_for_function(f"document.body.innerText.includes('({3001 + step}/4541)')", polling=10,
-                                   timeout=10000)
+            page.wait_for_function(f"window.__shown === {3001 + step}", polling=10, timeout=10000)
             times.append(time.perf_counter() - t0)
-        assert v.shown_frame == 3012
+        in_page = page.evaluate("window.__lat")
+        assert v.shown_frame == 3012 and len(in_page) == 12, in_page
         np.testing.assert_allclose(v._handles["camera"].position, long_pose(3012)[:3, 3], atol=1e-2)
-        page_ms, server_ms = 1e3 * np.median(times), 1e3 * np.median(server_s)
+        page_ms, trip_ms, server_ms = np.median(in_page), 1e3 * np.median(times), 1e3 * np.median(server_s)
         print(f"\nlong replay: opened in {opened_s:.2f} s; frame change: server {server_ms:.1f} ms, on the page "
-              f"{page_ms:.0f} ms (median of {len(times)}, max {1e3 * max(times):.0f} ms)")
+              f"{page_ms:.0f} ms (median of {len(in_page)}, max {max(in_page):.0f} ms), through playwright "
+              f"{trip_ms:.0f} ms")
         assert server_ms < 100, server_s
-        assert page_ms < 1500, times
+        assert page_ms < 1500, in_page
         page.close()
     finally:
         v.close()
