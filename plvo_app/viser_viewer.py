@@ -23,7 +23,7 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.types import Frame
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   load_rrd, thin, zeta_colors)
+                                   load_rrd, simplify_polyline, thin, zeta_colors)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
@@ -50,9 +50,11 @@ class ViewLimits:
     scan_points: int = 30000
     map_points: int = 60000
     lines: int = 5000
-    # Thick lines cost the browser most: 3000 -> 800 points took a frame change on a 4541-frame replay in headless
-    # Chromium (software GL, a loaded 2-core machine) from ~730 to ~420 ms, the server's share being ~5 ms.
+    # Lines cost the browser most, by the segment: 3000 -> 800 trajectory points took a frame change on a 4541-frame
+    # replay in headless Chromium (software GL, a loaded 2-core machine) from ~730 to ~420 ms. Simplified to
+    # `trajectory_tolerance` metres rather than strided, a road's straights cost two points.
     trajectory_points: int = 800
+    trajectory_tolerance: float = 0.05
     image_width: int = 480
 
 
@@ -292,7 +294,7 @@ class ViserViewer:
             self._layer(key, visible, pts, None, None)
             return
         p = np.asarray(pts, np.float32)
-        p = np.vstack([p[thin(len(p), self.limits.trajectory_points)], p[-1:]])
+        p = p[simplify_polyline(p, self.limits.trajectory_tolerance, self.limits.trajectory_points)]
         self._segments(key, name, pts, np.stack([p[:-1], p[1:]], axis=1), visible, color, width)
 
     def _camera(self, f: int, visible: bool) -> None:
