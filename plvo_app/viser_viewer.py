@@ -152,12 +152,12 @@ class ViserViewer:
                 return
             if not self._camera_placed:
                 self._place_camera(f)
-            with self.server.atomic():
+            with self.server.atomic():  # one websocket window: the page applies it in one render frame
                 self._draw(f)
+                self.status.content = self._status_text(f, int(position))  # with the scene it names, not before
             if self._live and self.follow.value:
                 self._follow(f)
             self.shown_frame = f  # after drawing: readers of shown_frame see a finished scene
-            self.status.content = self._status_text(f, int(position))
 
     @staticmethod
     def _view_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
