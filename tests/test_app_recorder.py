@@ -186,3 +186,25 @@ def test_unreadable_recording_is_a_plvo_error(tmp_path):
         read_rrd(bad)
     with pytest.raises(RecordingError, match="missing.rrd"):
         read_rrd(tmp_path / "missing.rrd")
+
+
+def test_simplified_polyline_keeps_bends_not_straights():
+    """A trajectory is drawn simplified to a tolerance: a straight stretch keeps its ends, a bend its points, a U-turn
+    the point it folds back at (distances to the segment, not its line), all within the tolerance and the budget."""
+    from plvo_app.scene_common import simplify_polyline
+
+    rng = np.random.default_rng(0)
+    ell = np.cumsum(np.r_[np.zeros((1, 3)), np.tile([0, 0, 1.0], (200, 1)), np.tile([1.0, 0, 0], (200, 1))], 0)
+    np.testing.assert_array_equal(simplify_polyline(ell + rng.normal(0, 0.005, ell.shape), 0.05, 800), [0, 200, 400])
+    u = np.c_[np.zeros((100, 2)), np.r_[np.arange(50.0), 49 - np.arange(50.0)]]
+    np.testing.assert_array_equal(simplify_polyline(u, 0.05, 800), [0, 49, 99])
+    a = np.linspace(0, np.pi, 1000)
+    arc = np.c_[100 * np.cos(a), np.zeros(1000), 100 * np.sin(a)]
+    idx = simplify_polyline(arc, 0.05, 800)
+    assert idx[0] == 0 and idx[-1] == 999 and 50 < len(idx) < 400
+    k = np.minimum(np.searchsorted(idx, np.arange(1000), side="right") - 1, len(idx) - 2)  # each vertex's chord
+    a, d = arc[idx[k]], arc[idx[k + 1]] - arc[idx[k]]
+    t = np.clip(np.einsum("ij,ij->i", arc - a, d) / np.einsum("ij,ij->i", d, d), 0, 1)
+    assert np.linalg.norm(arc - a - t[:, None] * d, axis=1).max() <= 0.05
+    assert len(simplify_polyline(arc, 0.0, 100)) <= 100 and simplify_polyline(arc, 0.0, 100)[-1] == 999
+    np.testing.assert_array_equal(simplify_polyline(arc[:2], 0.05, 800), [0, 1])
