@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from plvo.config import LoopConfig, RegistrationConfig
@@ -42,13 +44,34 @@ def test_database_keeps_a_compact_copy_of_each_keyframe(synth_seq):
         kf = _keyframe(k, rng, scan)
         raw += _bytes(kf)
         closer.on_keyframe(kf)
-    kept = [closer._kfs[k] for k in range(12)]
+    in_memory = [closer._kfs[k] for k in range(12)]
+    assert all(kf.scan is None for kf in in_memory)  # the scans are on disk (plvo.loop.scan_store)
+    per_kf_ram = sum(_bytes(dataclasses.replace(kf, scan=np.zeros((0, 3)))) for kf in in_memory) / 12
+    kept = [closer.keyframe(k) for k in range(12)]
     per_kf = sum(_bytes(kf) for kf in kept) / len(kept)
     # only features with depth, float32; the scan as int16 centimetres, cropped and thinned as registration uses it
     assert all(np.isfinite(kf.points_cam).all() and np.isfinite(kf.lines_cam).all() for kf in kept)
     assert all(kf.scan.dtype == np.int16 and kf.scan.shape[1] == 3 for kf in kept)
     assert per_kf < 0.1 * raw / 12, (per_kf, raw / 12)
-    assert per_kf < 250_000, per_kf  # 1500 keyframes (KITTI 00) would keep < 375 MB at the most
+    assert per_kf < 250_000, per_kf
+    # in memory, a keyframe is its features with depth: 1500 keyframes (KITTI 00) keep < 50 MB
+    assert per_kf_ram < 35_000, per_kf_ram
+    assert closer._scans.bytes_on_disk == sum(kf.scan.nbytes for kf in kept)
+
+
+def test_scan_store_reads_back_what_it_was_given_and_leaves_no_file(tmp_path):
+    from plvo.loop.scan_store import ScanStore
+
+    rng = np.random.default_rng(0)
+    store = ScanStore(str(tmp_path))
+    scans = {k: rng.integers(-6000, 6000, (int(rng.integers(0, 5000)), 3)).astype(np.int16) for k in range(20)}
+    for k, s in scans.items():
+        store.put(k, s)
+    assert list(tmp_path.iterdir()) == []  # unlinked on open: a killed run leaves nothing behind
+    for k in (7, 0, 19, 3):
+        np.testing.assert_array_equal(store.get(k), scans[k])
+    assert store.get(99) is None and len(store) == 20
+    store.close()
 
 
 def test_compact_scan_keeps_the_returns_registration_uses_to_a_centimetre(synth_seq):

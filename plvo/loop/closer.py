@@ -24,6 +24,7 @@ import numpy as np
 from plvo.config import LoopConfig, RegistrationConfig
 from plvo.geometry import se3
 from plvo.loop.database import Detection, LoopDetector
+from plvo.loop.scan_store import ScanStore
 from plvo.loop.verification import LoopKeyframe, Verification, verify
 from plvo.loop.vocabulary import Vocabulary, load_default
 
@@ -147,7 +148,8 @@ class LoopCloser:
             lbd_vocab = lbd_vocab or (Vocabulary.load(d / "lbd.npz") if d else load_default("lbd"))
         self.orb_vocab, self.lbd_vocab = orb_vocab, lbd_vocab
         self.detector = LoopDetector(self.cfg)
-        self._kfs: dict[int, LoopKeyframe] = {}
+        self._kfs: dict[int, LoopKeyframe] = {}  # compact (compact_keyframe), their scans in self._scans
+        self._scans = ScanStore()
         self._ids: list[int] = []
         self._poses: dict[int, np.ndarray] = {}
         self._odom: dict[int, np.ndarray] = {}  # kf id -> T_prev_kf measured when it arrived
@@ -155,6 +157,12 @@ class LoopCloser:
         self._driven: list[float] = []  # metres of odometry from the first keyframe to each, by arrival index
         self.edges: list[LoopEdge] = []
         self._last_loop_at = -10**9  # arrival index of the last accepted loop
+
+    def keyframe(self, kf_id: int) -> LoopKeyframe:
+        """What the database keeps of keyframe kf_id, with its scan (read back from the scan store)."""
+        kf = self._kfs[kf_id]
+        scan = self._scans.get(kf_id)
+        return kf if scan is None else dataclasses.replace(kf, scan=scan)
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe ids (K,) and the closer's current T_world_cam estimates (K,4,4)."""
@@ -185,6 +193,9 @@ class LoopCloser:
         self.detector.add(kf.kf_id, bp, bl)
         checks, accepted, rejections = self._verify(kf, det)
         self._kfs[kf.kf_id] = compact_keyframe(self._kfs[kf.kf_id])
+        if self._kfs[kf.kf_id].scan is not None:  # a candidate's scan is read back when it is verified
+            self._scans.put(kf.kf_id, self._kfs[kf.kf_id].scan)
+            self._kfs[kf.kf_id] = self._kfs[kf.kf_id].without_scan()
         t3 = time.perf_counter()
         ids = before = after = None
         if accepted is not None:
@@ -226,7 +237,7 @@ class LoopCloser:
                 checks.append(Verification(kf.kf_id, cid, False, np.eye(4), 0, 0, 0, 0, False, 0.0, far, 0.0))
                 rejections.append(f"candidate {cid}: {far}")
                 continue
-            v = verify(query, self._kfs[cid], self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
+            v = verify(query, self.keyframe(cid), self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
                        against_odometry=lambda T, c=cid: self._implausible(kf.kf_id, c, T))
             checks.append(v)
             if v.accepted:
