@@ -57,6 +57,22 @@ def test_database_retrieves_the_right_keyframe_among_distractors(scenes):
     assert len(db.query(*query, max_id=1010).kf_ids) <= 11
 
 
+def test_database_keeps_the_vectors_of_the_newest_keyframes_only(scenes):
+    """The inverted index answers for every keyframe; the vectors (asked for by the neighbour score) are kept for
+    the newest `keep_bows` keyframes only, so a long run holds one copy of each keyframe's words."""
+    bows, query = scenes
+    db, full = KeyframeDatabase(keep_bows=2), KeyframeDatabase()
+    for i, (bp, bl) in enumerate(bows):
+        db.add(1000 + i, bp, bl)
+        full.add(1000 + i, bp, bl)
+    assert len(db._bows) == 2 and db.bows(1024) == bows[24]
+    with pytest.raises(KeyError, match="keyframe 1017"):
+        db.bows(1017)
+    q, qf = db.query(*query), full.query(*query)
+    np.testing.assert_array_equal(q.kf_ids, qf.kf_ids)
+    np.testing.assert_array_equal(q.combined, qf.combined)
+
+
 def _bow(words) -> BowVector:
     w = np.asarray(sorted(set(words)), np.int32)
     return BowVector(w, np.full(len(w), 1.0 / len(w)))

@@ -83,12 +83,17 @@ class QueryScores:
 
 
 class KeyframeDatabase:
-    """Point and line BoW vectors of keyframes with one inverted index per vocabulary."""
+    """Point and line BoW vectors of keyframes with one inverted index per vocabulary.
 
-    def __init__(self) -> None:
+    keep_bows: how many of the newest keyframes keep their BoW vectors for `bows` (None: all). The inverted index
+    holds every keyframe's words for queries; the vectors themselves are only asked for the newest few (the
+    neighbour score), so a long run need not keep a second copy of every keyframe's."""
+
+    def __init__(self, keep_bows: int | None = None) -> None:
         self._ids: list[int] = []
         self._slot: dict[int, int] = {}
-        self._bows: list[tuple[BowVector, BowVector]] = []
+        self._keep_bows = keep_bows
+        self._bows: dict[int, tuple[BowVector, BowVector]] = {}
         self._has_lines = np.zeros(0, bool)
         self._points = _InvertedIndex()
         self._lines = _InvertedIndex()
@@ -105,13 +110,19 @@ class KeyframeDatabase:
         slot = len(self._ids)
         self._ids.append(int(kf_id))
         self._slot[int(kf_id)] = slot
-        self._bows.append((bow_points, bow_lines))
+        self._bows[slot] = (bow_points, bow_lines)
+        if self._keep_bows is not None and slot - self._keep_bows in self._bows:
+            del self._bows[slot - self._keep_bows]
         self._has_lines = np.append(self._has_lines, len(bow_lines) > 0)
         self._points.add(slot, bow_points)
         self._lines.add(slot, bow_lines)
 
     def bows(self, kf_id: int) -> tuple[BowVector, BowVector]:
-        return self._bows[self._slot[kf_id]]
+        try:
+            return self._bows[self._slot[kf_id]]
+        except KeyError:
+            raise KeyError(f"keyframe database: no BoW vectors kept for keyframe {kf_id} (the newest "
+                           f"{self._keep_bows} keep theirs)") from None
 
     def query(self, bow_points: BowVector, bow_lines: BowVector, max_id: int | None = None) -> QueryScores:
         """Scores of every keyframe with id <= max_id (all when None) that shares a word with the query."""
@@ -174,7 +185,7 @@ class LoopDetector:
 
     def __init__(self, cfg: LoopConfig | None = None) -> None:
         self.cfg = cfg or LoopConfig()
-        self.db = KeyframeDatabase()
+        self.db = KeyframeDatabase(keep_bows=max(1, self.cfg.neighbours))
         self._order: list[int] = []  # keyframe ids in arrival order
         self._last_island: tuple[int, int] | None = None
         self._count = 0
