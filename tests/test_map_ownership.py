@@ -183,34 +183,3 @@ def test_a_global_ba_read_before_a_later_loop_correction_is_skipped():
     out = core.process(GlobalBAJob(30, m.global_data(), 1.0, corrections_applied=1))
     assert out.correction is None and out.rejected.startswith("superseded")
 
-
-def test_map_memory_follows_the_live_landmarks_not_the_distance_driven():
-    """Over 1000 keyframes that each create 20 points, observe the last keyframes' points too and cull what is
-    out of sight, the map holds the observation rows of the live landmarks only (dropped every
-    COMPACT_EVERY_KEYFRAMES keyframes), and a window read after a compaction is the window read before it."""
-    from plvo.tracking.map import COMPACT_EVERY_KEYFRAMES
-
-    rng = np.random.default_rng(1)
-    m = LandmarkMap()
-    per_kf, n_kf = 20, 1000
-    for k in range(n_kf):
-        kf = m.add_keyframe(3 * k, _pose(float(k)))
-        pc = np.c_[rng.uniform(-5, 5, per_kf), rng.uniform(-2, 2, per_kf), rng.uniform(5, 20, per_kf)]
-        ids = m.add_points(se3.transform_points(m.keyframe_pose(kf), pc), np.zeros((per_kf, 32), np.uint8),
-                           np.ones(per_kf, bool), kf, np.arange(per_kf), np.zeros((per_kf, 2)), pc[:, 2])
-        older = np.flatnonzero(m.point_alive(np.arange(max(0, ids[0] - 3 * per_kf), ids[0])))
-        older += max(0, ids[0] - 3 * per_kf)
-        m.add_point_observations(older, kf, np.arange(len(older)), np.zeros((len(older), 2)))
-        m.mark_seen(np.r_[older, ids], np.zeros(0, np.int64), 3 * k)
-        m.cull(3 * k, 9)  # landmarks unseen for three keyframes are culled
-    live_obs = len(m.point_observations().landmark)
-    assert m._pobs.n <= live_obs + COMPACT_EVERY_KEYFRAMES * 4 * per_kf  # at most one compaction period of dead rows
-    made = int(m._pts["n_obs"].sum())  # ~80k observations were made; measured: 8.4k rows kept
-    assert m._pobs.n < made / 5, (m._pobs.n, made)
-    assert m._pobs.cols["landmark"].shape[0] <= 2 * max(m._pobs.n, 16) + 4 * per_kf * COMPACT_EVERY_KEYFRAMES
-    window_before = m.window_data(np.arange(n_kf - 5, n_kf))
-    m._drop_dead_observations()
-    assert m._pobs.n == live_obs
-    window_after = m.window_data(np.arange(n_kf - 5, n_kf))
-    for name in ("kf_ids", "point_ids", "points", "pt_kf", "pt_idx", "pt_uv", "pt_depth"):
-        np.testing.assert_array_equal(getattr(window_before, name), getattr(window_after, name))

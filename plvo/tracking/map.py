@@ -2,8 +2,7 @@
 
 Everything lives in growable numpy arrays indexed by landmark id (ids are never reused; removal clears the
 `alive` flag), so the hot paths (gathering the positions of the landmarks seen in the previous frame) are single
-fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement, prior);
-those of removed landmarks are dropped every COMPACT_EVERY_KEYFRAMES keyframes.
+fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement, prior).
 
 One owner, one writer: the tracker adds keyframes, landmarks and observations; the workers (back end, loop closer)
 never write it. They read copies taken at fixed points (`window_data`, `global_data`, `poses`) and return typed
@@ -24,7 +23,6 @@ from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, Win
                                        motion_for, move_points, transform_each)
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
-COMPACT_EVERY_KEYFRAMES = 100  # how often the observations of removed landmarks are dropped
 
 
 class _Columns:
@@ -53,16 +51,6 @@ class _Columns:
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.cols[name][: self.n]
-
-    def keep_rows(self, keep: np.ndarray) -> None:
-        """Drop the rows [0, n) where keep (n,) is False, into arrays of twice the rows left (the old ones freed)."""
-        rows = np.flatnonzero(keep)
-        cap = max(16, 2 * len(rows))
-        for name, (shape, dt, fill) in self._spec.items():
-            kept = np.full((cap, *shape), fill, dtype=dt)
-            kept[: len(rows)] = self.cols[name][rows]
-            self.cols[name] = kept
-        self.n = len(rows)
 
 
 def _point_store() -> _Columns:
@@ -162,23 +150,10 @@ class LandmarkMap:
             self._kfs.cols["T_world_cam"].flags.writeable = True
             row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
             self._kfs.cols["T_world_cam"].flags.writeable = False
-            if row[0] and row[0] % COMPACT_EVERY_KEYFRAMES == 0:
-                self._drop_dead_observations()
             self._obs_start[False].append(self._pobs.n)
             self._obs_start[True].append(self._lobs.n)
             self.version += 1
             return int(row[0])
-
-    def _drop_dead_observations(self) -> None:
-        """Forget the observations of removed landmarks: nothing reads them (every reader keeps the live ones), and
-        culled landmarks are most of a long run's, so this memory follows the live map, not the distance driven. Observation rows are renumbered; landmark ids are not."""
-        for is_line, store, obs in ((False, self._pts, self._pobs), (True, self._lines, self._lobs)):
-            if obs.n == 0:
-                continue
-            keep = store["alive"][obs["landmark"]]
-            before = np.r_[0, np.cumsum(keep)]  # kept rows before each old row
-            self._obs_start[is_line] = before[np.asarray(self._obs_start[is_line], np.int64)].tolist()
-            obs.keep_rows(keep)
 
     def poses(self) -> np.ndarray:
         """(N,4,4) T_world_cam of every keyframe, by id (a copy)."""
