@@ -38,6 +38,7 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.geometry import se3
+from plvo.heap import release_free_memory
 from plvo.recording import NullRecorder, Recorder, RunInfo
 from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, MapResult, MetricsResult, TimingResult, TrackingResult
 from plvo.tracking.corrections import GLOBAL_BA, LOOP
@@ -308,6 +309,8 @@ class System:
         for name, value in timings.items():
             self.timings[name].append(value)
         self._emit(out.frame_index, results)
+        if c is not None:  # a correction of the whole map: its temporaries were the size of the map (plvo.heap)
+            release_free_memory()
         if c is not None and c.source == LOOP and self._lags[2] == 0:
             self._apply_all("loop")
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from plvo.backend.problem import BAResult
 from plvo.config import SystemConfig
+from plvo.heap import release_free_memory
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import LoopKeyframe
@@ -157,6 +158,8 @@ class LoopCore:
         self._skipped = 0
         res = global_ba.optimize(problem, self.cfg.backend, loop_cfg, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
+        del problem
+        release_free_memory()  # the adjustment's peak is freed but kept by the C heap otherwise (plvo.heap)
         timings = {"loop_global_ba": time.perf_counter() - t0}
         why = global_ba.implausible(poses, res, self.cfg.loop, job.correction_m)
         if why:
