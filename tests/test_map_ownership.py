@@ -182,4 +182,3 @@ def test_a_global_ba_read_before_a_later_loop_correction_is_skipped():
                   MapCorrection(LOOP, np.arange(4), m.poses(), m.poses())]
     out = core.process(GlobalBAJob(30, m.global_data(), 1.0, corrections_applied=1))
     assert out.correction is None and out.rejected.startswith("superseded")
-

@@ -272,7 +272,8 @@ class LoopCloser:
             return ""
         length = float(np.linalg.norm(T_match_query[:3, 3]))
         if length > self.cfg.max_view_m:
-            return f"the loop edge is {length:.0f} m long (two views of one place are at most {self.cfg.max_view_m:.0f} m apart)"
+            return (f"the loop edge is {length:.0f} m long (two views of one place are at most "
+                    f"{self.cfg.max_view_m:.0f} m apart)")
         T_est = se3.inv(self._poses[match_id]) @ self._poses[query_id]
         jump = float(np.linalg.norm((se3.inv(T_est) @ T_match_query)[:3, 3]))
         driven, limit = self._drift_limit(query_id, match_id)

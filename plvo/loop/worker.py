@@ -153,8 +153,8 @@ class LoopCore:
                                                    self.cfg.loop, self.cfg.backend)
         # It does the work of the one it superseded too: twice the iterations (not more, so that its cost stays
         # bounded when several loops close in a row).
-        loop_cfg = dataclasses.replace(self.cfg.loop,
-                                       global_ba_iterations=self.cfg.loop.global_ba_iterations * (1 + min(self._skipped, 1)))
+        iterations = self.cfg.loop.global_ba_iterations * (1 + min(self._skipped, 1))
+        loop_cfg = dataclasses.replace(self.cfg.loop, global_ba_iterations=iterations)
         self._skipped = 0
         res = global_ba.optimize(problem, self.cfg.backend, loop_cfg, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
