@@ -193,21 +193,27 @@ def _write_frame(seq_dir: Path, i: int, image: np.ndarray, scan: np.ndarray, dep
         np.save(seq_dir / "gt" / "depth" / f"{name}.npy", depth.astype(np.float32))
 
 
-def _check_sequence_name(sequence: str) -> None:
+def check_sequence_name(sequence: str) -> None:
     if not isinstance(sequence, str) or not re.fullmatch(r"\d{2}", sequence):
         raise SynthError(f"sequence: expected two digits like '00', got {sequence!r}")
 
 
-def check_request(out_root: Path, sequence: str, settings: SynthSettings, overwrite: bool = False) -> None:
-    """Raise SynthError (naming the setting) if the sequence cannot or must not be written; touches nothing."""
-    _check_sequence_name(sequence)
-    plan_trajectory(settings)
+def check_target(out_root: Path, sequence: str, overwrite: bool, how: str = "overwrite=True / --overwrite") -> None:
+    """Raise SynthError if out_root cannot hold sequences/NN, or NN is there and overwrite is False (`how`: how
+    to pass it, in the message)."""
     out_root = Path(out_root)
     if out_root.exists() and not out_root.is_dir():
         raise SynthError(f"out_root: {out_root} exists and is not a directory")
     target = out_root / "sequences" / sequence
     if target.exists() and not overwrite:
-        raise SynthError(f"{target}: sequence {sequence} exists already (pass overwrite=True / --overwrite)")
+        raise SynthError(f"{target}: sequence {sequence} exists already (pass {how})")
+
+
+def check_request(out_root: Path, sequence: str, settings: SynthSettings, overwrite: bool = False) -> None:
+    """Raise SynthError (naming the setting) if the sequence cannot or must not be written; touches nothing."""
+    check_sequence_name(sequence)
+    plan_trajectory(settings)
+    check_target(out_root, sequence, overwrite)
 
 
 def write_sequence(root: Path, sequence: str, settings: SynthSettings,

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -26,7 +25,7 @@ import cv2
 import numpy as np
 
 from plvo.data.synth import sensors
-from plvo.data.synth.generate import write_staged
+from plvo.data.synth.generate import check_sequence_name, check_target, write_staged
 from plvo.data.synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE
 from plvo.data.synth.textures import build_atlas
 from plvo.data.synth.twin.follow import FollowedPath, PoseInterpolator, load_followed
@@ -218,16 +217,10 @@ def write_twin(root: Path, sequence: str, settings: TwinSettings,
 
 def check_twin_request(out_root: Path, sequence: str, settings: TwinSettings, overwrite: bool = False) -> None:
     """Raise SynthError (naming the file, range or setting) if the twin cannot or must not be written."""
-    if not isinstance(sequence, str) or not re.fullmatch(r"\d{2}", sequence):
-        raise SynthError(f"sequence: expected two digits like '00', got {sequence!r}")
+    check_sequence_name(sequence)
     settings.check()
     load_followed(settings.follow, settings.frames)
-    out_root = Path(out_root)
-    if out_root.exists() and not out_root.is_dir():
-        raise SynthError(f"out_root: {out_root} exists and is not a directory")
-    target = out_root / "sequences" / sequence
-    if target.exists() and not overwrite:
-        raise SynthError(f"{target}: sequence {sequence} exists already (pass --overwrite)")
+    check_target(out_root, sequence, overwrite, how="--overwrite")
 
 
 def generate_twin(out_root, sequence: str, settings: TwinSettings,
