@@ -70,12 +70,16 @@ def twin_jobs(sequences: Sequence[str], poses_dir: str | Path, base: TwinSetting
     return jobs
 
 
-def is_current(root: Path, job: TwinJob) -> bool:
-    scene = Path(root) / "sequences" / job.sequence / "gt" / "scene.json"
+def _scene(root: Path, sequence: str) -> dict:
+    """root/sequences/NN/gt/scene.json, or {} when there is none (or it cannot be read)."""
     try:
-        data = json.loads(scene.read_text())
+        return json.loads((Path(root) / "sequences" / sequence / "gt" / "scene.json").read_text())
     except (OSError, ValueError):
-        return False
+        return {}
+
+
+def is_current(root: Path, job: TwinJob) -> bool:
+    data = _scene(root, job.sequence)
     return data.get("twin_version") == TWIN_VERSION and data.get("settings") == asdict(job.settings)
 
 
@@ -98,11 +102,7 @@ def _run_local(job: TwinJob, root: str, progress_queue=None) -> TwinDone:
 
 def is_twin(root: Path, sequence: str) -> bool:
     """Whether root/sequences/NN is a twin (which a batch may replace when stale), by its gt/scene.json."""
-    try:
-        data = json.loads((Path(root) / "sequences" / sequence / "gt" / "scene.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return data.get("generator") == "plvo.data.synth.twin"
+    return _scene(root, sequence).get("generator") == "plvo.data.synth.twin"
 
 
 def ensure_twins(jobs: Sequence[TwinJob], root: str | Path, workers: int = 1, ray: str | None = None,
