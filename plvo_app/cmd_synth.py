@@ -21,6 +21,7 @@ from plvo.data.synth import SynthSettings, generate_sequence
 from plvo.data.synth.generate import check_request
 from plvo.data.synth.twin.lidars import LIDAR_MODELS
 from plvo.errors import SynthError
+from plvo_app.twin_progress import twin_progress
 
 log = logging.getLogger(__name__)
 
@@ -112,25 +113,10 @@ def run_twins(args: argparse.Namespace) -> int:
 
         check_twin_request(args.out, args.seq, base, args.overwrite)
         jobs = [TwinJob(args.seq, base)]
-    bar = None if args.no_progress else tqdm(total=0, unit="frame", desc="twins " + ",".join(j.sequence for j in jobs))
-
-    def progress(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total = total
-            bar.update(done - bar.n)
-
-    def on_done(d) -> None:
-        state = "kept (current)" if d.cached else (f"FAILED: {d.error}" if d.error else
-                                                   f"{d.frames} frames in {d.seconds:.1f} s, {d.fps:.2f} frames/s")
-        (bar.write if bar is not None else print)(f"twin {d.sequence}: {state}")
-
     start = time.perf_counter()
-    try:
+    with twin_progress("twins " + ",".join(j.sequence for j in jobs), bar=not args.no_progress) as (progress, on_done):
         results = ensure_twins(jobs, args.out, workers=args.workers, ray=args.ray, progress=progress, on_done=on_done,
                                overwrite=args.overwrite)
-    finally:
-        if bar is not None:
-            bar.close()
     seconds = time.perf_counter() - start
     frames = sum(r.frames for r in results)
     log.info("wrote %d twin(s) under %s: %d frames in %.1f s (%.2f frames/s over the batch)",

@@ -157,31 +157,17 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
 def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
     """Generate the --twins that are missing or stale under --twin-root (in parallel, with a progress bar), then
     one source per twin, labelled twinNN."""
-    from tqdm import tqdm
-
     from plvo.data.synth.twin.batch import ensure_twins, parse_twins, twin_jobs
     from plvo.data.synth.twin.generate import TwinSettings
+    from plvo_app.twin_progress import twin_progress
 
     if args.kitti_poses is None:
         raise PlvoError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ... 10.txt)")
     base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar)
     jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
-    bar = tqdm(total=0, unit="frame", desc="twins", file=sys.stderr)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
-
-    def on_done(d) -> None:
-        state = "kept (current)" if d.cached else (f"FAILED: {d.error}" if d.error else
-                                                   f"generated, {d.frames} frames at {d.fps:.2f} frames/s")
-        bar.write(f"twin {d.sequence}: {state}", file=sys.stderr)
-
-    try:
+    with twin_progress("twins", lines=sys.stderr) as (progress, on_done):
         done = ensure_twins(jobs, args.twin_root, workers=args.workers, ray=args.ray, progress=progress,
                             on_done=on_done)
-    finally:
-        bar.close()
     failed = [d for d in done if d.error]
     if failed:
         raise PlvoError(f"twin {failed[0].sequence}: generation failed: {failed[0].error}")
