@@ -66,7 +66,11 @@ def lidar_rays(steps: int = LIDAR_AZIMUTH_STEPS) -> np.ndarray:
     """(64*steps,3) float32 unit ray directions in the Velodyne frame (x forward, y left, z up), beam-major."""
     el = np.radians(LIDAR_ELEVATIONS_DEG)[:, None]
     az = np.linspace(0.0, 2.0 * np.pi, steps, endpoint=False)[None, :]
-    d = np.stack(
-        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1
-    )
-    return d.reshape(-1, 3).astype(np.float32)
+    return spherical_directions(el, az).reshape(-1, 3).astype(np.float32)
+
+
+def spherical_directions(elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+    """Elevations and azimuths (rad, broadcasting against each other) -> (..., 3) unit vectors in the Velodyne
+    frame (x forward, y left, z up)."""
+    return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                     np.sin(elevation) * np.ones_like(azimuth)], axis=-1)

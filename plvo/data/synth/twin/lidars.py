@@ -31,8 +31,7 @@ class LidarModel:
     def rays(self) -> np.ndarray:
         """(B*S,3) float32 unit directions, azimuth-major (column by column), each column from the top beam."""
         el = np.radians(np.asarray(self.elevations_deg))[None, :]
-        az = self.azimuths()[:, None]
-        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
+        d = sensors.spherical_directions(el, self.azimuths()[:, None])
         return d.reshape(-1, 3).astype(np.float32)
 
     def azimuths(self) -> np.ndarray:
