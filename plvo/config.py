@@ -121,6 +121,9 @@ class TrackingConfig:
     line_search_px: float = 4.0  # both endpoints of a segment this close to the projected landmark line
     line_search_angle_deg: float = 3.0
     line_search_overlap: float = 0.3  # shared extent along the line, as a share of the shorter segment
+    # Issue 16: every this many keyframes the map drops the landmarks nothing can use any more (seen by one keyframe,
+    # out of every back-end window and tracker search; LandmarkMap.drop_unreachable); 0 keeps them all.
+    drop_unreachable_every: int = 10
 
 
 @dataclass(frozen=True)

@@ -73,7 +73,7 @@ RANGES: dict[str, Range] = {
     "tracking.ransac_reproj_px": POSITIVE, "tracking.ransac_line_px": POSITIVE, "tracking.ransac_iterations": COUNT,
     "tracking.outlier_reproj_px": POSITIVE, "tracking.search_radius_px": POSITIVE,
     "tracking.search_keyframes": COUNT0, "tracking.line_search_px": POSITIVE, "tracking.line_search_angle_deg": ANGLE,
-    "tracking.line_search_overlap": SHARE,
+    "tracking.line_search_overlap": SHARE, "tracking.drop_unreachable_every": COUNT0,
     "registration.voxel_m": POSITIVE, "registration.ndt_resolution_m": POSITIVE,
     "registration.max_iterations": COUNT, "registration.max_range_m": POSITIVE,
     "registration.max_correspondence_m": POSITIVE, "registration.min_range_m": NON_NEGATIVE,

@@ -214,7 +214,17 @@ class System:
                 self._submit("loop", self._loop_job(kf), frame.index + lag_l)
             if lag_l == 0:
                 self._apply_all("loop")
+        every = self.config.tracking.drop_unreachable_every
+        if every and kf.kf_id % every == 0:
+            with self._clock.stage("map_drop"):
+                self.map.drop_unreachable(frame.index, self._oldest_reachable_keyframe(kf.kf_id))
         return keyframe
+
+    def _oldest_reachable_keyframe(self, kf_id: int) -> int:
+        """The oldest keyframe whose landmarks anything may still read: the window of the back-end job in flight
+        (one at a time: the next keyframe's job waits for it) and of the next, the tracker's recent keyframes."""
+        reach = max(2, self.config.backend.window_keyframes, self.config.tracking.search_keyframes)
+        return kf_id - reach
 
     def _backend_job(self, kf):
         from plvo.backend.worker import BackendJob

@@ -93,15 +93,93 @@ def test_apply_update_is_atomic_for_snapshot_readers():
     assert np.allclose(m.point_positions(pids), 299.0) and m.keyframe_pose(kf)[2, 3] == pytest.approx(299.0)
 
 
-def test_apply_update_skips_removed_landmarks_and_cull():
+def test_apply_update_skips_removed_landmarks():
     m, kf, pos, pids, ends, lids = _map_with_landmarks(10, 4)
     m.remove_points(pids[:2])
     m.apply_update(point_ids=pids, point_positions=np.zeros((10, 3)))
     assert np.isnan(m.point_positions(pids[:2])).all() and np.allclose(m.point_positions(pids[2:]), 0)
-    m.mark_seen(pids[2:5], lids[:1], frame_index=20)
-    removed = m.cull(frame_index=20, max_unseen_frames=5)  # the rest were last seen at frame 7
-    assert removed == (5, 3)
-    assert m.point_alive(pids).tolist() == [False, False, True, True, True] + [False] * 5
+
+
+def _drive(m: LandmarkMap, n_kf: int, per_kf: int = 100, seen_again: int = 20, drop_every: int = 0,
+           reach: int = 8, first_kf: int = 0):
+    """Keyframes first_kf.. each making per_kf points; the first seen_again of each are observed again by the
+    next keyframe (so they have two views, the rest one). Drops every drop_every keyframes (0: never)."""
+    rng = np.random.default_rng(first_kf)
+    made = []
+    for k in range(first_kf, first_kf + n_kf):
+        kf = m.add_keyframe(3 * k, _T(z=float(k)))
+        if made:
+            m.add_point_observations(made[-1][:seen_again], kf, np.arange(seen_again), np.zeros((seen_again, 2)))
+            m.mark_seen(made[-1][:seen_again], [], 3 * k)
+        ids = m.add_points(rng.normal(size=(per_kf, 3)) + [0, 0, k], _desc(per_kf, k), np.ones(per_kf, bool), kf,
+                           np.arange(per_kf), rng.uniform(0, 500, (per_kf, 2)), rng.uniform(5, 40, per_kf))
+        made.append(ids)
+        if drop_every and kf % drop_every == 0:
+            m.drop_unreachable(3 * k, kf - reach)
+    return made
+
+
+def test_drop_unreachable_keeps_every_read_that_matters():
+    """Dropping single-view landmarks out of reach changes none of what the back end, the global BA and the
+    tracker read, keeps ids valid (dropped ones read as gone), and continues ids after the dropped ones."""
+    m = LandmarkMap()
+    made = _drive(m, 30)
+    window = np.arange(22, 30)
+    before = (m.window_data(window), m.global_data(), m.point_positions(made[-1]))
+    dropped = m.drop_unreachable(frame_index=3 * 29, oldest_reachable_kf=22)
+    # keyframes 0..21 made 100 points each; 20 of each but the last (21's are seen by 22) have two views
+    assert dropped == (22 * 80, 0)
+    assert m.n_points == 30 * 100 - 22 * 80
+    after = (m.window_data(window), m.global_data(), m.point_positions(made[-1]))
+    for a, b in zip(before[:2], after[:2]):
+        for name in vars(a):
+            x, y = getattr(a, name), getattr(b, name)
+            if name == "version":
+                continue
+            if isinstance(x, np.ndarray):
+                assert np.array_equal(x, y, equal_nan=True), name
+            else:
+                assert x == y, name
+    assert np.array_equal(before[2], after[2])
+    gone = made[3][20:]
+    assert not m.point_alive(gone).any() and np.isnan(m.point_positions(gone)).all()
+    assert m.point_alive(made[3][:20]).all() and np.isfinite(m.point_positions(made[3][:20])).all()
+    assert len(m.point_observations(gone).landmark) == 0
+    assert len(m.point_observations(made[3][:20]).landmark) == 40
+    # a correction naming dropped landmarks moves the others and skips them
+    m.apply_update(point_ids=np.r_[gone[:5], made[3][:5]], point_positions=np.zeros((10, 3)))
+    assert np.allclose(m.point_positions(made[3][:5]), 0) and not m.point_alive(gone[:5]).any()
+    # observations of a dropped landmark are refused; new ids continue after every id ever handed out
+    m.add_point_observations(gone[:3], 29, np.arange(3), np.zeros((3, 2)))
+    assert len(m.point_observations(gone).landmark) == 0
+    new = m.add_points(np.zeros((2, 3)), _desc(2), np.ones(2, bool), 29, np.arange(2), np.zeros((2, 2)))
+    assert new.tolist() == [3000, 3001]
+
+
+def test_drop_unreachable_keeps_what_is_tracked_and_what_is_in_reach():
+    m = LandmarkMap()
+    made = _drive(m, 12)
+    m.mark_seen(made[0][50:60], [], 3 * 11)  # still tracked by the frame-to-frame matching
+    m.drop_unreachable(3 * 11, oldest_reachable_kf=4)
+    assert m.point_alive(made[0][50:60]).all() and not m.point_alive(made[0][60:]).any()
+    assert m.point_alive(np.concatenate(made[4:])).all()
+
+
+def test_map_memory_follows_what_is_kept_not_the_run_length():
+    """1000 keyframes of 300 points, 20 of each seen twice: with the drop, rows and bytes are those of the
+    multi-view landmarks plus the reachable keyframes' points; without, every landmark ever made."""
+    kept, full = LandmarkMap(), LandmarkMap()
+    _drive(kept, 500, per_kf=300, drop_every=10)
+    mid = kept.nbytes()
+    _drive(kept, 500, per_kf=300, drop_every=10, first_kf=500)
+    _drive(full, 1000, per_kf=300)
+    rows = kept._pts.n
+    assert rows <= 1000 * 20 + (8 + 10) * 300  # multi-view ones, and the keyframes within reach or since a drop
+    assert full._pts.n == 300_000 and full.n_points == 300_000
+    assert kept.nbytes() < 0.2 * full.nbytes()
+    # what is kept per keyframe is the multi-view landmarks and their observations: ~ (20 x 100 B + 40 x 60 B)
+    per_kf = (kept.nbytes() - mid) / 500
+    assert per_kf < 2 * (20 * 100 + 40 * 60), per_kf
 
 
 def test_frame_association_counts():

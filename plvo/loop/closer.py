@@ -24,7 +24,7 @@ import numpy as np
 from plvo.config import LoopConfig, RegistrationConfig
 from plvo.geometry import se3
 from plvo.loop.database import Detection, LoopDetector
-from plvo.loop.scan_store import ScanStore
+from plvo.loop.keyframe_store import FIELD_NAMES, KeyframeStore
 from plvo.loop.verification import LoopKeyframe, Verification, verify
 from plvo.loop.vocabulary import Vocabulary, load_default
 
@@ -148,8 +148,7 @@ class LoopCloser:
             lbd_vocab = lbd_vocab or (Vocabulary.load(d / "lbd.npz") if d else load_default("lbd"))
         self.orb_vocab, self.lbd_vocab = orb_vocab, lbd_vocab
         self.detector = LoopDetector(self.cfg)
-        self._kfs: dict[int, LoopKeyframe] = {}  # compact (compact_keyframe), their scans in self._scans
-        self._scans = ScanStore()
+        self._kfs = KeyframeStore()  # every keyframe, compact (compact_keyframe), on disk
         self._ids: list[int] = []
         self._poses: dict[int, np.ndarray] = {}
         self._odom: dict[int, np.ndarray] = {}  # kf id -> T_prev_kf measured when it arrived
@@ -159,10 +158,9 @@ class LoopCloser:
         self._last_loop_at = -10**9  # arrival index of the last accepted loop
 
     def keyframe(self, kf_id: int) -> LoopKeyframe:
-        """What the database keeps of keyframe kf_id, with its scan (read back from the scan store)."""
-        kf = self._kfs[kf_id]
-        scan = self._scans.get(kf_id)
-        return kf if scan is None else dataclasses.replace(kf, scan=scan)
+        """What the database keeps of keyframe kf_id (read back from its store), scan included."""
+        arrays, frame_index = self._kfs.get(kf_id)
+        return LoopKeyframe(kf_id, frame_index=frame_index, **arrays)
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe ids (K,) and the closer's current T_world_cam estimates (K,4,4)."""
@@ -189,13 +187,11 @@ class LoopCloser:
         t1 = time.perf_counter()
         det = self.detector.detect(kf.kf_id, bp, bl)
         t2 = time.perf_counter()
-        self._store(kf)
+        query = self._store(kf)
         self.detector.add(kf.kf_id, bp, bl)
-        checks, accepted, rejections = self._verify(kf, det)
-        self._kfs[kf.kf_id] = compact_keyframe(self._kfs[kf.kf_id])
-        if self._kfs[kf.kf_id].scan is not None:  # a candidate's scan is read back when it is verified
-            self._scans.put(kf.kf_id, self._kfs[kf.kf_id].scan)
-            self._kfs[kf.kf_id] = self._kfs[kf.kf_id].without_scan()
+        checks, accepted, rejections = self._verify(query, det)
+        stored = compact_keyframe(query)
+        self._kfs.put(kf.kf_id, {f: getattr(stored, f) for f in FIELD_NAMES}, kf.frame_index)
         t3 = time.perf_counter()
         ids = before = after = None
         if accepted is not None:
@@ -204,7 +200,8 @@ class LoopCloser:
         return LoopOutcome(kf.kf_id, det, checks, accepted, rejections, ids, before, after,
                           1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))
 
-    def _store(self, kf: LoopKeyframe) -> None:
+    def _store(self, kf: LoopKeyframe) -> LoopKeyframe:
+        """Book the keyframe's arrival (pose, odometry, distance driven) -> it as the query, its scan compacted."""
         step = 0.0
         if self._ids:
             prev = self._ids[-1]
@@ -213,11 +210,10 @@ class LoopCloser:
         self._index[kf.kf_id] = len(self._ids)
         self._driven.append((self._driven[-1] if self._driven else 0.0) + step)
         scan = None if kf.scan is None or not self.cfg.use_registration else compact_scan(kf.scan, self.reg_cfg)
-        self._kfs[kf.kf_id] = LoopKeyframe(kf.kf_id, np.array(kf.T_world_cam, float), kf.keypoints,
-                                           kf.descriptors, kf.points_cam, kf.segments, kf.line_descriptors,
-                                           kf.lines_cam, scan, kf.frame_index)
         self._ids.append(kf.kf_id)
         self._poses[kf.kf_id] = np.array(kf.T_world_cam, float)
+        return LoopKeyframe(kf.kf_id, np.array(kf.T_world_cam, float), kf.keypoints, kf.descriptors, kf.points_cam,
+                            kf.segments, kf.line_descriptors, kf.lines_cam, scan, kf.frame_index)
 
     def _verify(self, kf: LoopKeyframe, det: Detection):
         if not det.ready:
@@ -228,7 +224,7 @@ class LoopCloser:
             log.info("loop candidates %s for keyframe %d not verified: %s", list(map(int, det.to_verify)), kf.kf_id,
                      why)
             return (), None, (why,)
-        query = self._kfs[kf.kf_id]
+        query = kf
         checks, rejections = [], []
         for cid in det.to_verify:
             far = self._too_far(kf.kf_id, cid)

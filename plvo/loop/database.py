@@ -57,6 +57,9 @@ class _InvertedIndex:
             self._blocks.append((a[0] + b[0], word[order], np.concatenate([b[2], a[2]])[order],
                                  np.concatenate([b[3], a[3]])[order]))
 
+    def nbytes(self) -> int:
+        return sum(sum(a.nbytes for a in block[1:]) for block in self._blocks)
+
     def scores(self, bow: BowVector, n_slots: int) -> np.ndarray:
         """L1 score of the query against every slot, (n_slots,) float (sum over shared words of min weights)."""
         out = np.zeros(n_slots)

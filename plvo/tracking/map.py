@@ -1,8 +1,10 @@
 """The landmark map: point and line landmarks, keyframe poses, observations with their depth priors, graph edges.
 
-Everything lives in growable numpy arrays indexed by landmark id (ids are never reused; removal clears the
-`alive` flag), so the hot paths (gathering the positions of the landmarks seen in the previous frame) are single
-fancy-indexing calls. Observations are flat arrays (landmark id, keyframe id, feature index, measurement, prior).
+Everything lives in growable numpy arrays, landmarks in rows sorted by id (ids are never reused; removal clears
+the `alive` flag, and `drop_unreachable` deletes the rows of landmarks nothing can use any more, so that memory
+follows what is kept, not the length of the run), so the hot paths (gathering the positions of the landmarks seen
+in the previous frame) are one binary search and one fancy-indexing call. Observations are flat arrays (landmark
+id, keyframe id, feature index, measurement, prior).
 
 One owner, one writer: the tracker adds keyframes, landmarks and observations; the workers (back end, loop closer)
 never write it. They read copies taken at fixed points (`window_data`, `global_data`, `poses`) and return typed
@@ -19,59 +21,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from plvo.geometry import se3
+from plvo.tracking.columns import Columns, LandmarkTable
 from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, WindowData, corrected_poses,
                                        motion_for, move_points, transform_each)
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
 
 
-class _Columns:
-    """Named numpy columns that grow together by doubling; rows [0, n) are in use."""
-
-    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
-        self._spec = spec
-        self.n = 0
-        self.cols = {k: np.full((16, *shape), fill, dtype=dt) for k, (shape, dt, fill) in spec.items()}
-
-    def append(self, **values: np.ndarray) -> np.ndarray:
-        k = len(next(iter(values.values())))
-        cap = len(next(iter(self.cols.values())))
-        if self.n + k > cap:
-            new_cap = max(2 * cap, self.n + k)
-            for name, (shape, dt, fill) in self._spec.items():
-                grown = np.full((new_cap, *shape), fill, dtype=dt)
-                grown[: self.n] = self.cols[name][: self.n]
-                self.cols[name] = grown
-        rows = np.arange(self.n, self.n + k)
-        for name in self._spec:
-            if name in values:
-                self.cols[name][rows] = values[name]
-        self.n += k
-        return rows
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.cols[name][: self.n]
-
-
-def _point_store() -> _Columns:
-    return _Columns({
+def _point_store() -> LandmarkTable:
+    return LandmarkTable({
         "position": ((3,), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
         "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
         "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
     })
 
 
-def _line_store() -> _Columns:
-    return _Columns({
+def _line_store() -> LandmarkTable:
+    return LandmarkTable({
         "endpoints": ((2, 3), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
         "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
         "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
     })
 
 
-def _obs_store(meas_shape: tuple[int, ...], prior_shape: tuple[int, ...]) -> _Columns:
+def _obs_store(meas_shape: tuple[int, ...], prior_shape: tuple[int, ...]) -> Columns:
     # prior: the observing keyframe's depth prior of the feature (z for points, camera-frame endpoints for lines)
-    return _Columns({
+    return Columns({
         "landmark": ((), np.int64, -1), "keyframe": ((), np.int64, -1), "feature": ((), np.int64, -1),
         "measurement": (meas_shape, np.float64, np.nan), "prior": (prior_shape, np.float64, np.nan),
     })
@@ -120,7 +95,7 @@ class LandmarkMap:
         self._lines = _line_store()
         self._pobs = _obs_store((2,), ())
         self._lobs = _obs_store((4,), (2, 3))
-        self._kfs = _Columns({"frame": ((), np.int64, -1), "T_world_cam": ((4, 4), np.float64, np.nan)})
+        self._kfs = Columns({"frame": ((), np.int64, -1), "T_world_cam": ((4, 4), np.float64, np.nan)})
         self._kfs.cols["T_world_cam"].flags.writeable = False
         self.edges: list[GraphEdge] = []
         # per keyframe, the number of observation rows when it was made (points, lines): see _window_obs
@@ -219,50 +194,54 @@ class LandmarkMap:
             self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4),
                           prior)
 
-    def _add_obs(self, store: _Columns, obs: _Columns, ids, kf_id, feature_idx, meas, prior=None) -> None:
-        k = len(ids)
+    def _add_obs(self, store: LandmarkTable, obs: Columns, ids, kf_id, feature_idx, meas, prior=None) -> None:
+        rows, found = store.rows(ids)
+        k = int(found.sum())
         if k == 0:
             return
-        values = dict(landmark=ids, keyframe=np.full(k, kf_id), feature=np.asarray(feature_idx).reshape(k),
-                      measurement=meas)
+        # A landmark dropped by `cull_unreachable` (never one the tracker still follows) gets no observation.
+        values = dict(landmark=ids[found], keyframe=np.full(k, kf_id),
+                      feature=np.asarray(feature_idx).reshape(-1)[found], measurement=meas[found])
         if prior is not None:
-            values["prior"] = np.asarray(prior, float).reshape(k, *obs.cols["prior"].shape[1:])
+            values["prior"] = np.asarray(prior, float).reshape(len(ids), *obs.cols["prior"].shape[1:])[found]
         obs.append(**values)
-        np.add.at(store.cols["n_obs"], ids, 1)
+        np.add.at(store.cols["n_obs"], rows[found], 1)
         self.version += 1
 
     # ---- reading -----------------------------------------------------------------------------------------
     def point_positions(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids -> (k,3) world positions; NaN for removed landmarks."""
         with self.lock:
-            ids = np.asarray(ids, dtype=np.int64)
-            out = self._pts["position"][ids].copy()
-            out[~self._pts["alive"][ids]] = np.nan
+            rows, ok = self._pts.live_rows(ids)
+            out = self._pts["position"][rows] if len(self._pts["position"]) else np.zeros((len(rows), 3))
+            out[~ok] = np.nan
             return out
 
     def line_endpoints(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids -> (k,2,3) world endpoints; NaN for removed landmarks."""
         with self.lock:
-            ids = np.asarray(ids, dtype=np.int64)
-            out = self._lines["endpoints"][ids].copy()
-            out[~self._lines["alive"][ids]] = np.nan
+            rows, ok = self._lines.live_rows(ids)
+            out = self._lines["endpoints"][rows] if len(self._lines["endpoints"]) else np.zeros((len(rows), 2, 3))
+            out[~ok] = np.nan
             return out
 
     def point_alive(self, ids: np.ndarray) -> np.ndarray:
         with self.lock:
-            return self._pts["alive"][np.asarray(ids, dtype=np.int64)].copy()
+            return self._pts.live_rows(ids)[1]
 
     def line_alive(self, ids: np.ndarray) -> np.ndarray:
         with self.lock:
-            return self._lines["alive"][np.asarray(ids, dtype=np.int64)].copy()
+            return self._lines.live_rows(ids)[1]
 
     def point_descriptors(self, ids: np.ndarray) -> np.ndarray:
+        """(k,) ids of live landmarks -> (k,32) ORB descriptors."""
         with self.lock:
-            return self._pts["descriptor"][np.asarray(ids, dtype=np.int64)].copy()
+            return self._pts["descriptor"][self._pts.rows(ids)[0]]
 
     def line_descriptors(self, ids: np.ndarray) -> np.ndarray:
+        """(k,) ids of live landmarks -> (k,32) LBD descriptors."""
         with self.lock:
-            return self._lines["descriptor"][np.asarray(ids, dtype=np.int64)].copy()
+            return self._lines["descriptor"][self._lines.rows(ids)[0]]
 
     def point_observations(self, ids: np.ndarray | None = None) -> Observations:
         """Observations of the given point landmarks (all when None) that are still alive."""
@@ -274,9 +253,9 @@ class LandmarkMap:
             return self._observations(self._lines, self._lobs, ids)
 
     @staticmethod
-    def _observations(store: _Columns, obs: _Columns, ids) -> Observations:
+    def _observations(store: LandmarkTable, obs: Columns, ids) -> Observations:
         lm = obs["landmark"]
-        keep = store["alive"][lm] if len(lm) else np.zeros(0, bool)
+        keep = store.live_rows(lm)[1]
         if ids is not None:
             keep &= np.isin(lm, np.asarray(ids, dtype=np.int64))
         return Observations(lm[keep].copy(), obs["keyframe"][keep].copy(), obs["feature"][keep].copy(),
@@ -285,31 +264,54 @@ class LandmarkMap:
     def mark_seen(self, point_ids: np.ndarray, line_ids: np.ndarray, frame_index: int) -> None:
         """Stamp the landmarks tracked in frame_index (used to cull landmarks nobody sees any more)."""
         with self.lock:
-            self._pts.cols["last_seen_frame"][np.asarray(point_ids, dtype=np.int64)] = frame_index
-            self._lines.cols["last_seen_frame"][np.asarray(line_ids, dtype=np.int64)] = frame_index
+            for store, ids in ((self._pts, point_ids), (self._lines, line_ids)):
+                rows, found = store.rows(ids)
+                store.cols["last_seen_frame"][rows[found]] = frame_index
 
     # ---- removing and updating ---------------------------------------------------------------------------
     def remove_points(self, ids: np.ndarray) -> None:
         with self.lock:
-            self._pts.cols["alive"][np.asarray(ids, dtype=np.int64)] = False
+            rows, found = self._pts.rows(ids)
+            self._pts.cols["alive"][rows[found]] = False
             self.version += 1
 
     def remove_lines(self, ids: np.ndarray) -> None:
         with self.lock:
-            self._lines.cols["alive"][np.asarray(ids, dtype=np.int64)] = False
+            rows, found = self._lines.rows(ids)
+            self._lines.cols["alive"][rows[found]] = False
             self.version += 1
 
-    def cull(self, frame_index: int, max_unseen_frames: int) -> tuple[int, int]:
-        """Remove landmarks not tracked in the last max_unseen_frames frames; returns (points, lines) removed."""
+    def drop_unreachable(self, frame_index: int, oldest_reachable_kf: int, min_views: int = 2) -> tuple[int, int]:
+        """Drop (rows and observations) the landmarks nothing can use any more, and those removed before.
+
+        Unreachable: seen by fewer than min_views keyframes (so in no global bundle adjustment), made by a keyframe
+        older than oldest_reachable_kf (so in no back-end window or tracker search from now on: the caller passes
+        the oldest keyframe any of them may still read) and not tracked in this frame or the one before. Most
+        landmarks are such: at 900 frames of the town 80 % of them had one view. Their ids stay valid: reads find
+        them gone, as removed ones. Returns the live (points, lines) dropped."""
         with self.lock:
             counts = []
-            for store in (self._pts, self._lines):
-                stale = store["alive"] & (store["last_seen_frame"] < frame_index - max_unseen_frames)
-                store.cols["alive"][: store.n][stale] = False
-                counts.append(int(stale.sum()))
+            for store, obs, lines in ((self._pts, self._pobs, False), (self._lines, self._lobs, True)):
+                unreachable = store["alive"] & (store["n_obs"] < min_views) & (
+                    store["first_kf"] < oldest_reachable_kf) & (store["last_seen_frame"] < frame_index - 1)
+                counts.append(int(unreachable.sum()))
+                drop = unreachable | ~store["alive"]
+                if not drop.any():
+                    continue
+                store.keep(~drop)
+                keep_obs = store.rows(obs["landmark"])[1]
+                if not keep_obs.all():
+                    kept_before = np.r_[0, np.cumsum(keep_obs)]
+                    self._obs_start[lines] = kept_before[np.asarray(self._obs_start[lines], np.int64)].tolist()
+                    obs.keep(keep_obs)
             if any(counts):
                 self.version += 1
             return counts[0], counts[1]
+
+    def nbytes(self) -> int:
+        """Bytes the map's arrays hold (landmarks, observations, keyframes), capacity included."""
+        with self.lock:
+            return sum(c.nbytes() for c in (self._pts, self._lines, self._pobs, self._lobs, self._kfs))
 
     def apply_update(self, point_ids=None, point_positions=None, line_ids=None, line_endpoints=None,
                      keyframe_ids=None, keyframe_T_world_cam=None) -> int:
@@ -317,13 +319,11 @@ class LandmarkMap:
         (f,) keyframe ids with (f,4,4) poses, all world. Removed landmarks are skipped. Returns the new version."""
         with self.lock:
             if point_ids is not None and len(point_ids):
-                ids = np.asarray(point_ids, dtype=np.int64)
-                ok = self._pts["alive"][ids]
-                self._pts.cols["position"][ids[ok]] = np.asarray(point_positions, float).reshape(-1, 3)[ok]
+                rows, ok = self._pts.live_rows(point_ids)
+                self._pts.cols["position"][rows[ok]] = np.asarray(point_positions, float).reshape(-1, 3)[ok]
             if line_ids is not None and len(line_ids):
-                ids = np.asarray(line_ids, dtype=np.int64)
-                ok = self._lines["alive"][ids]
-                self._lines.cols["endpoints"][ids[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
+                rows, ok = self._lines.live_rows(line_ids)
+                self._lines.cols["endpoints"][rows[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
             if keyframe_ids is not None and len(keyframe_ids):
                 ids = np.asarray(keyframe_ids, dtype=np.int64)
                 # Re-projected onto SE(3) on every write: workers chain these poses through rigid inverses
@@ -364,25 +364,26 @@ class LandmarkMap:
                                       correction.line_endpoints, cids, M)
             return self.apply_update(pt_ids, pts, ln_ids, lns, kf_ids[changed], new[changed])
 
-    def _moved(self, store: _Columns, column: str, changed: np.ndarray, D: np.ndarray, ids: np.ndarray,
+    def _moved(self, store: LandmarkTable, column: str, changed: np.ndarray, D: np.ndarray, ids: np.ndarray,
                refined: np.ndarray, cids: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Landmark ids and new positions: the refined ones rebased by their creator's motion since the snapshot,
         the others created by a changed keyframe moved with it."""
         first = store["first_kf"]  # non-decreasing: landmarks are made by the newest keyframe
-        ids = np.asarray(ids, np.int64)
+        shape = store.cols[column].shape[1:]
+        k = int(np.prod(shape)) // 3  # 3D points a landmark: 1 for points, 2 endpoints for lines
+        rows, ok = store.live_rows(ids)  # landmarks culled since the snapshot are left out
+        rows, refined = rows[ok], np.asarray(refined, float).reshape(-1, *shape)[ok]
         start = int(np.searchsorted(first, changed.min())) if len(changed) else len(first)
         tail = np.arange(start, len(first))
         tail = tail[store["alive"][start:] & np.isin(first[start:], changed)]
-        others = np.setdiff1d(tail, ids)
-        shape = store.cols[column].shape[1:]
-        k = int(np.prod(shape)) // 3  # 3D points a landmark: 1 for points, 2 endpoints for lines
+        others = np.setdiff1d(tail, rows)
         moved = move_points(store[column][others].reshape(-1, 3), np.repeat(first[others], k), D)
-        if len(ids):
-            Mi = motion_for(first[ids], cids, M) if len(M) else np.broadcast_to(np.eye(4), (len(ids), 4, 4))
-            refined = transform_each(np.repeat(Mi, k, axis=0), np.asarray(refined, float).reshape(-1, 3))
+        if len(rows):
+            Mi = motion_for(first[rows], cids, M) if len(M) else np.broadcast_to(np.eye(4), (len(rows), 4, 4))
+            refined = transform_each(np.repeat(Mi, k, axis=0), refined.reshape(-1, 3))
         else:
             refined = np.zeros((0, 3))
-        out_ids = np.r_[others, ids]
+        out_ids = store["id"][np.r_[others, rows].astype(np.int64)]
         out = np.r_[moved, refined].reshape(-1, *shape)
         return out_ids, out
 
@@ -402,17 +403,15 @@ class LandmarkMap:
             out.update(line_ids=lns[0], lines=lns[1], ln_kf=lns[2], ln_idx=lns[3], ln_seg=lns[4], ln_prior=lns[5])
         return WindowData(**out)
 
-    def _window_obs(self, store: _Columns, obs: _Columns, column: str, kf_ids: np.ndarray):
+    def _window_obs(self, store: LandmarkTable, obs: Columns, column: str, kf_ids: np.ndarray):
         # A keyframe's observations are recorded from when it is made on (the triangulation ablation adds some to
         # the keyframe before it then): the window's all lie after its first keyframe's start.
         start = int(self._obs_start[obs is self._lobs][int(kf_ids.min())]) if len(kf_ids) else obs.n
-        lm = obs["landmark"][start:]
         keep = np.isin(obs["keyframe"][start:], kf_ids)
-        keep &= store["alive"][lm] if len(lm) else np.zeros(0, bool)
+        keep &= store.live_rows(obs["landmark"][start:])[1]
         rows = start + np.flatnonzero(keep)
-        lm = obs["landmark"]
-        ids, idx = np.unique(lm[rows], return_inverse=True)
-        return (ids, store[column][ids].copy(), np.searchsorted(kf_ids, obs["keyframe"][rows]), idx,
+        ids, idx = np.unique(obs["landmark"][rows], return_inverse=True)
+        return (ids, store[column][store.rows(ids)[0]], np.searchsorted(kf_ids, obs["keyframe"][rows]), idx,
                 obs["measurement"][rows].copy(), obs["prior"][rows].copy())
 
     def global_data(self, min_views: int = 2) -> GlobalData:
@@ -420,34 +419,34 @@ class LandmarkMap:
         keyframes see (what the global bundle adjustment after a loop needs)."""
         with self.lock:
             lm, kf = self._pobs["landmark"], self._pobs["keyframe"]
-            keep = self._pts["alive"][lm] if len(lm) else np.zeros(0, bool)
-            counts = np.bincount(lm[keep], minlength=self._pts.n)
-            keep &= counts[lm] >= min_views
+            rows, keep = self._pts.live_rows(lm)
+            counts = np.bincount(rows[keep], minlength=self._pts.n)
+            keep &= counts[rows] >= min_views
             ids = np.unique(lm[keep])
             return GlobalData(
                 kf_ids=np.arange(self._kfs.n), T_world_cam=self._kfs["T_world_cam"].copy(), edges=tuple(self.edges),
                 landmark=lm[keep].copy(), keyframe=kf[keep].copy(), measurement=self._pobs["measurement"][keep].copy(),
-                depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][ids].copy(),
+                depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][self._pts.rows(ids)[0]],
                 version=self.version)
 
     def landmarks_first_seen_after(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Ids of the live point and line landmarks created by keyframes newer than kf_id."""
         with self.lock:
-            pts = np.flatnonzero(self._pts["alive"] & (self._pts["first_kf"] > kf_id))
-            lns = np.flatnonzero(self._lines["alive"] & (self._lines["first_kf"] > kf_id))
+            pts = self._pts["id"][self._pts["alive"] & (self._pts["first_kf"] > kf_id)]
+            lns = self._lines["id"][self._lines["alive"] & (self._lines["first_kf"] > kf_id)]
             return pts, lns
 
     def point_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Live point landmark ids (P,) and the keyframe that created each (P,)."""
         with self.lock:
-            ids = np.flatnonzero(self._pts["alive"])
-            return ids, self._pts["first_kf"][ids].copy()
+            alive = self._pts["alive"]
+            return self._pts["id"][alive], self._pts["first_kf"][alive]
 
     def line_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Live line landmark ids (L,) and the keyframe that created each (L,)."""
         with self.lock:
-            ids = np.flatnonzero(self._lines["alive"])
-            return ids, self._lines["first_kf"][ids].copy()
+            alive = self._lines["alive"]
+            return self._lines["id"][alive], self._lines["first_kf"][alive]
 
     def snapshot(self) -> MapSnapshot:
         """A frozen, consistent copy of the live landmarks and all keyframe poses."""
@@ -455,9 +454,9 @@ class LandmarkMap:
             pa, la = self._pts["alive"], self._lines["alive"]
             return MapSnapshot(
                 version=self.version,
-                point_ids=np.flatnonzero(pa), point_positions=self._pts["position"][pa].copy(),
+                point_ids=self._pts["id"][pa], point_positions=self._pts["position"][pa].copy(),
                 point_has_depth=self._pts["has_depth"][pa].copy(),
-                line_ids=np.flatnonzero(la), line_endpoints=self._lines["endpoints"][la].copy(),
+                line_ids=self._lines["id"][la], line_endpoints=self._lines["endpoints"][la].copy(),
                 line_has_depth=self._lines["has_depth"][la].copy(),
                 keyframe_ids=np.arange(self._kfs.n), keyframe_frames=self._kfs["frame"].copy(),
                 keyframe_T_world_cam=self._kfs["T_world_cam"].copy(),

@@ -1,0 +1,85 @@
+"""Growable numpy columns, and landmark tables whose rows can be dropped while their ids stay valid."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class Columns:
+    """Named numpy columns that grow together by doubling; rows [0, n) are in use."""
+
+    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
+        self._spec = spec
+        self.n = 0
+        self.cols = {k: np.full((16, *shape), fill, dtype=dt) for k, (shape, dt, fill) in spec.items()}
+
+    def append(self, **values: np.ndarray) -> np.ndarray:
+        """Append k rows (every value (k, ...)); returns their row indices."""
+        k = len(next(iter(values.values())))
+        if self.n + k > self.capacity:
+            self._resize(max(2 * self.capacity, self.n + k))
+        rows = np.arange(self.n, self.n + k)
+        for name in self._spec:
+            if name in values:
+                self.cols[name][rows] = values[name]
+        self.n += k
+        return rows
+
+    @property
+    def capacity(self) -> int:
+        return len(next(iter(self.cols.values())))
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep the rows where mask (n,) is True, in order; the capacity shrinks to twice what is kept (at least
+        16), so that memory follows what the table holds rather than the most it ever held."""
+        kept = {name: self.cols[name][: self.n][mask] for name in self._spec}
+        self.n = int(np.count_nonzero(mask))
+        self._resize(max(16, 2 * self.n), kept)
+
+    def _resize(self, capacity: int, source: dict[str, np.ndarray] | None = None) -> None:
+        for name, (shape, dt, fill) in self._spec.items():
+            src = self.cols[name][: self.n] if source is None else source[name]
+            grown = np.full((capacity, *shape), fill, dtype=dt)
+            grown[: self.n] = src
+            writeable = self.cols[name].flags.writeable
+            self.cols[name] = grown
+            grown.flags.writeable = writeable
+
+    def nbytes(self) -> int:
+        return sum(c.nbytes for c in self.cols.values())
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.cols[name][: self.n]
+
+
+class LandmarkTable(Columns):
+    """Columns of landmarks keyed by id: ids are handed out in increasing order and never reused, and rows stay
+    sorted by id when some are dropped (`keep`), so an id's row is found by binary search and an id handed to a
+    worker stays valid (found or known gone) whatever was dropped meanwhile."""
+
+    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
+        super().__init__({"id": ((), np.int64, -1), **spec})
+        self.next_id = 0
+
+    def append(self, **values: np.ndarray) -> np.ndarray:
+        """Append k landmarks; returns their new ids."""
+        k = len(next(iter(values.values())))
+        ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
+        self.next_id += k
+        super().append(id=ids, **values)
+        return ids
+
+    def rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k,) ids -> (k,) rows and (k,) bool found; a row where not found is 0 and must not be used."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        have = self["id"]
+        if len(have) == 0:
+            return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+        rows = np.minimum(np.searchsorted(have, ids), len(have) - 1)
+        found = have[rows] == ids
+        return np.where(found, rows, 0), found
+
+    def live_rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Like rows, with found only where the landmark is also alive."""
+        rows, found = self.rows(ids)
+        return rows, found & self["alive"][rows] if len(self["alive"]) else found
