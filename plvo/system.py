@@ -88,7 +88,10 @@ class _Clock:
 class System:
     """Runs the pipeline frame by frame and streams each stage's result to `recorder`."""
 
-    def __init__(self, config: SystemConfig, recorder: Recorder | None = None):
+    def __init__(self, config: SystemConfig, recorder: Recorder | None = None, calib: Calibration | None = None):
+        """calib: the sequence's calibration, when known before the first frame: the stages and the worker
+        processes are then made at once, so that the workers start up (~1-2 s of imports on two cores) while the
+        caller sets up its recorders and viewer, instead of while the first frames are tracked."""
         self.config = config
         self.recorder = recorder if recorder is not None else NullRecorder()
         self.timings: dict[str, list[float]] = defaultdict(list)  # stage -> seconds, one entry a time it ran
@@ -111,6 +114,8 @@ class System:
         # skipped ones refines all of their corrections, and is judged against the largest (global_ba.implausible).
         self._pose_graph_move_m = 0.0
         self._edge_rows = (np.zeros((0, 2), int), np.zeros(0, int), np.zeros(0))  # the graph's edges so far (_graph)
+        if calib is not None:
+            self._build(calib)
 
     @property
     def map(self):
@@ -408,9 +413,14 @@ def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
 
     progress: an optional callable taking the number of frames done (e.g. a tqdm bar's update).
     """
+    return run_system(System(config, recorder, calib=dataset.calib), dataset, progress)
+
+
+def run_system(system: System, dataset, progress=None) -> RunOutput:
+    """Step `system` (made for this dataset, not yet stepped) through every frame, each read while the one before
+    is tracked, let its workers finish, and close it -> RunOutput."""
     from plvo.data.prefetch import prefetched
 
-    system = System(config, recorder)
     try:
         for frame in prefetched(dataset):
             system.step(frame)

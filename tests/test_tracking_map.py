@@ -101,19 +101,24 @@ def test_apply_update_skips_removed_landmarks():
 
 
 def _drive(m: LandmarkMap, n_kf: int, per_kf: int = 100, seen_again: int = 20, drop_every: int = 0,
-           reach: int = 8, first_kf: int = 0):
-    """Keyframes first_kf.. each making per_kf points; the first seen_again of each are observed again by the
-    next keyframe (so they have two views, the rest one). Drops every drop_every keyframes (0: never)."""
+           reach: int = 8, first_kf: int = 0, lines_per_kf: int = 0):
+    """Keyframes first_kf.. each making per_kf points and lines_per_kf lines; the first seen_again points and
+    every line of each are observed again by the next keyframe (so they have two views, the other points one).
+    Drops every drop_every keyframes (0: never). Returns the point ids made by each keyframe."""
     rng = np.random.default_rng(first_kf)
-    made = []
+    made, lines = [], []
     for k in range(first_kf, first_kf + n_kf):
         kf = m.add_keyframe(3 * k, _T(z=float(k)))
         if made:
             m.add_point_observations(made[-1][:seen_again], kf, np.arange(seen_again), np.zeros((seen_again, 2)))
-            m.mark_seen(made[-1][:seen_again], [], 3 * k)
+            m.add_line_observations(lines[-1], kf, np.arange(len(lines[-1])), np.zeros((len(lines[-1]), 4)))
+            m.mark_seen(made[-1][:seen_again], lines[-1], 3 * k)
         ids = m.add_points(rng.normal(size=(per_kf, 3)) + [0, 0, k], _desc(per_kf, k), np.ones(per_kf, bool), kf,
                            np.arange(per_kf), rng.uniform(0, 500, (per_kf, 2)), rng.uniform(5, 40, per_kf))
         made.append(ids)
+        lines.append(m.add_lines(rng.normal(size=(lines_per_kf, 2, 3)), _desc(lines_per_kf, k),
+                                 np.ones(lines_per_kf, bool), kf, np.arange(lines_per_kf),
+                                 rng.uniform(0, 500, (lines_per_kf, 4))))
         if drop_every and kf % drop_every == 0:
             m.drop_unreachable(3 * k, kf - reach)
     return made
@@ -123,12 +128,14 @@ def test_drop_unreachable_keeps_every_read_that_matters():
     """Dropping single-view landmarks out of reach changes none of what the back end, the global BA and the
     tracker read, keeps ids valid (dropped ones read as gone), and continues ids after the dropped ones."""
     m = LandmarkMap()
-    made = _drive(m, 30)
+    made = _drive(m, 30, lines_per_kf=5)
     window = np.arange(22, 30)
     before = (m.window_data(window), m.global_data(), m.point_positions(made[-1]))
     dropped = m.drop_unreachable(frame_index=3 * 29, oldest_reachable_kf=22)
-    # keyframes 0..21 made 100 points each; 20 of each but the last (21's are seen by 22) have two views
-    assert dropped == (22 * 80, 0)
+    # keyframes 0..21 made 100 points each; 20 of each but the last (21's are seen by 22) have two views. Lines
+    # are in no global BA: those last seen before keyframe 22 go whatever their views (keyframe 21's are seen by 22)
+    assert dropped == (22 * 80, 21 * 5)
+    assert m.n_lines == 9 * 5 and len(m.line_observations().landmark) == 9 * 5 + 8 * 5
     assert m.n_points == 30 * 100 - 22 * 80
     after = (m.window_data(window), m.global_data(), m.point_positions(made[-1]))
     for a, b in zip(before[:2], after[:2]):

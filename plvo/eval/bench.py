@@ -306,17 +306,21 @@ class SystemRun:
 
 def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None = None,
                  info: RunInfo | None = None, rrd: Path | None = None) -> SystemRun:
-    """Run plvo.system.run_dataset over in-memory frames, timing it; `rrd`: the recording file to measure."""
-    from plvo.system import run_dataset
+    """Run the System over `frames` as plvo-viz does, timing it; `rrd`: the recording file to measure.
+
+    As in plvo-viz, the System (and so its worker processes) is made before the recorders start, and the clock runs
+    from the first frame to the workers' last result: what plvo-viz's timings.json reports."""
+    from plvo.system import System, run_system
 
     tap = TimingTap(recorder if recorder is not None else NullRecorder())
+    system = System(cfg, tap, calib=frames.calib)
     if info is not None:
-        tap.on_run_start(info)  # run_dataset does not start the recorders; the recording needs calib and config
+        tap.on_run_start(info)  # the recording needs calib and config
     load0 = os.getloadavg()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     with RssSampler() as rss:
-        out = run_dataset(frames, cfg, tap)
+        out = run_system(system, frames)
     wall = time.perf_counter() - t0
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
     cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)

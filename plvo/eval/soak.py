@@ -109,7 +109,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     from plvo.system import System
 
     tap = SoakTap(recorder, rrd, window)
-    system = System(config, tap)
+    system = System(config, tap, calib=dataset.calib)  # as plvo-viz: the workers start while the recorder does
     system.start(info)
     t0 = time.perf_counter()
     try:

@@ -6,7 +6,7 @@ import numpy as np
 
 
 class Columns:
-    """Named numpy columns that grow together by doubling; rows [0, n) are in use."""
+    """Named numpy columns that grow together, by half again when full; rows [0, n) are in use."""
 
     def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
         self._spec = spec
@@ -17,7 +17,7 @@ class Columns:
         """Append k rows (every value (k, ...)); returns their row indices."""
         k = len(next(iter(values.values())))
         if self.n + k > self.capacity:
-            self._resize(max(2 * self.capacity, self.n + k))
+            self._resize(max(self.capacity + self.capacity // 2, self.n + k))
         rows = np.arange(self.n, self.n + k)
         for name in self._spec:
             if name in values:
@@ -30,11 +30,11 @@ class Columns:
         return len(next(iter(self.cols.values())))
 
     def keep(self, mask: np.ndarray) -> None:
-        """Keep the rows where mask (n,) is True, in order; the capacity shrinks to twice what is kept (at least
-        16), so that memory follows what the table holds rather than the most it ever held."""
+        """Keep the rows where mask (n,) is True, in order; the capacity shrinks to a quarter more than is kept,
+        so that memory follows what the table holds rather than the most it ever held."""
         kept = {name: self.cols[name][: self.n][mask] for name in self._spec}
         self.n = int(np.count_nonzero(mask))
-        self._resize(max(16, 2 * self.n), kept)
+        self._resize(16 + self.n + self.n // 4, kept)
 
     def _resize(self, capacity: int, source: dict[str, np.ndarray] | None = None) -> None:
         for name, (shape, dt, fill) in self._spec.items():

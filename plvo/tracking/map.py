@@ -32,7 +32,7 @@ def _point_store() -> LandmarkTable:
     return LandmarkTable({
         "position": ((3,), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
         "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
-        "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
+        "first_kf": ((), np.int64, -1), "last_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
     })
 
 
@@ -40,7 +40,7 @@ def _line_store() -> LandmarkTable:
     return LandmarkTable({
         "endpoints": ((2, 3), np.float64, np.nan), "descriptor": ((_DESC_BYTES,), np.uint8, 0),
         "has_depth": ((), np.bool_, False), "alive": ((), np.bool_, False), "n_obs": ((), np.int32, 0),
-        "first_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
+        "first_kf": ((), np.int64, -1), "last_kf": ((), np.int64, -1), "last_seen_frame": ((), np.int64, -1),
     })
 
 
@@ -206,6 +206,7 @@ class LandmarkMap:
             values["prior"] = np.asarray(prior, float).reshape(len(ids), *obs.cols["prior"].shape[1:])[found]
         obs.append(**values)
         np.add.at(store.cols["n_obs"], rows[found], 1)
+        np.maximum.at(store.cols["last_kf"], rows[found], kf_id)
         self.version += 1
 
     # ---- reading -----------------------------------------------------------------------------------------
@@ -284,16 +285,19 @@ class LandmarkMap:
     def drop_unreachable(self, frame_index: int, oldest_reachable_kf: int, min_views: int = 2) -> tuple[int, int]:
         """Drop (rows and observations) the landmarks nothing can use any more, and those removed before.
 
-        Unreachable: seen by fewer than min_views keyframes (so in no global bundle adjustment), made by a keyframe
-        older than oldest_reachable_kf (so in no back-end window or tracker search from now on: the caller passes
-        the oldest keyframe any of them may still read) and not tracked in this frame or the one before. Most
-        landmarks are such: at 900 frames of the town 80 % of them had one view. Their ids stay valid: reads find
-        them gone, as removed ones. Returns the live (points, lines) dropped."""
+        Unreachable: seen by no keyframe from oldest_reachable_kf on (so in no back-end window or tracker search
+        from now on: the caller passes the oldest keyframe any of them may still read), not tracked in this frame
+        or the one before, and, for points, seen by fewer than min_views keyframes (points two keyframes see are
+        kept for the global bundle adjustment after a loop, which adjusts no lines). Most landmarks are such: at
+        900 frames of the town 80 % of the points had one view. Their ids stay valid: reads find them gone, as
+        removed ones. Returns the live (points, lines) dropped."""
         with self.lock:
             counts = []
             for store, obs, lines in ((self._pts, self._pobs, False), (self._lines, self._lobs, True)):
-                unreachable = store["alive"] & (store["n_obs"] < min_views) & (
-                    store["first_kf"] < oldest_reachable_kf) & (store["last_seen_frame"] < frame_index - 1)
+                unreachable = store["alive"] & (store["last_kf"] < oldest_reachable_kf) & (
+                    store["last_seen_frame"] < frame_index - 1)
+                if not lines:
+                    unreachable &= store["n_obs"] < min_views
                 counts.append(int(unreachable.sum()))
                 drop = unreachable | ~store["alive"]
                 if not drop.any():
