@@ -222,7 +222,10 @@ class System:
         every = self.config.tracking.drop_unreachable_every
         if every and kf.kf_id % every == 0:
             with self._clock.stage("map_drop"):
-                self.map.drop_unreachable(frame.index, self._oldest_reachable_keyframe(kf.kf_id))
+                loop = self.config.loop
+                budget = loop.global_ba_max_points if loop.enabled and loop.global_ba else None
+                self.map.drop_unreachable(frame.index, self._oldest_reachable_keyframe(kf.kf_id),
+                                          global_ba_points=budget)
         return keyframe
 
     def _oldest_reachable_keyframe(self, kf_id: int) -> int:

@@ -163,6 +163,37 @@ def test_drop_unreachable_keeps_every_read_that_matters():
     assert new.tolist() == [3000, 3001]
 
 
+def test_drop_with_a_global_ba_budget_keeps_what_the_adjustment_picks():
+    """With a point budget, out-of-reach points ranked above today's share go: the global BA's pick is the same
+    before and after, now and after more keyframes."""
+    from plvo.loop.global_ba import point_budget
+
+    def picked(m):
+        d = m.global_data()
+        return set(point_budget(d.landmark, d.keyframe, 100).tolist())
+
+    full, trimmed = LandmarkMap(), LandmarkMap()
+    for m in (full, trimmed):
+        rng = np.random.default_rng(5)
+        made = _drive(m, 30)
+        # more views for some, so that ranks are not by id alone
+        for k in range(1, 25):
+            extra = made[k - 1][rng.choice(20, 5, replace=False)]
+            m.add_point_observations(extra, k, np.arange(5), np.zeros((5, 2)))
+    before = picked(trimmed)
+    trimmed.drop_unreachable(3 * 29, oldest_reachable_kf=22, global_ba_points=100)
+    assert picked(trimmed) == before == picked(full)
+    # every out-of-reach keyframe keeps only a few of its 20 two-view points
+    kept = trimmed.point_ids_and_first_keyframes()[1]
+    assert np.bincount(kept[kept < 21]).max() <= 5 and trimmed.n_points < full.n_points - 21 * 80 - 21 * 14
+    for m in (full, trimmed):
+        _drive(m, 10, first_kf=30)
+    assert picked(trimmed) == picked(full)
+    # no global BA: every point out of reach goes
+    trimmed.drop_unreachable(3 * 39, oldest_reachable_kf=32, global_ba_points=None)
+    assert (trimmed.point_ids_and_first_keyframes()[1] >= 31).all()
+
+
 def test_drop_unreachable_keeps_what_is_tracked_and_what_is_in_reach():
     m = LandmarkMap()
     made = _drive(m, 12)

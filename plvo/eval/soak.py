@@ -32,8 +32,8 @@ SCHEMA = "plvo.soak/1"
 REPEATED_PLACE = "repeated place"  # how the closer's drift check words a refusal (plvo.loop.closer)
 
 
-def tree_rss_mb() -> tuple[float, float, float | None]:
-    """(this process's RSS, the RSS of it and all its children, their PSS) in MB.
+def tree_rss_mb() -> tuple[float, float, float | None, list[float]]:
+    """(this process's RSS, the RSS of it and all its children, their PSS, each child's RSS by pid) in MB.
 
     The RSS sum counts the pages the processes share (the libraries every worker maps, copy-on-write) once for
     each; the PSS sum (Linux) splits each shared page among its sharers, so it is what the tree takes of the
@@ -43,14 +43,17 @@ def tree_rss_mb() -> tuple[float, float, float | None]:
     me = psutil.Process(os.getpid())
     procs = [me, *me.children(recursive=True)]
     own = me.memory_info().rss
-    total, pss = 0, 0
+    total, pss, children = 0, 0, []
     for p in procs:
         try:
-            total += p.memory_info().rss
+            rss = p.memory_info().rss
+            total += rss
+            if p is not me:
+                children.append((p.pid, rss / 2**20))
             pss = None if pss is None else pss + p.memory_full_info().pss
         except (psutil.Error, AttributeError):
             pss = None if p is me else pss
-    return own / 2**20, total / 2**20, None if pss is None else pss / 2**20
+    return own / 2**20, total / 2**20, None if pss is None else pss / 2**20, [round(r, 1) for _, r in sorted(children)]
 
 
 @dataclass
@@ -67,7 +70,8 @@ class SoakTap:
     lost: list[int] = field(default_factory=list)
     kf_frame: dict[int, int] = field(default_factory=dict)
     loops: list[LoopResult] = field(default_factory=list)
-    samples: list[dict[str, float]] = field(default_factory=list)
+    samples: list[dict[str, Any]] = field(default_factory=list)
+    map_bytes: Any = None  # a callable -> bytes the map holds now (run_soak sets it)
 
     def on_run_start(self, info: RunInfo) -> None:
         self.inner.on_run_start(info)
@@ -93,10 +97,13 @@ class SoakTap:
                 self.sample()
 
     def sample(self) -> None:
-        own, total, pss = tree_rss_mb()
+        own, total, pss, children = tree_rss_mb()
         size = self.rrd.stat().st_size if self.rrd is not None and self.rrd.exists() else 0
         self.samples.append({"frames": len(self.frames), "rss_mb": round(own, 1), "rss_tree_mb": round(total, 1),
-                             "pss_tree_mb": None if pss is None else round(pss, 1), "rrd_mb": round(size / 2**20, 2)})
+                             "pss_tree_mb": None if pss is None else round(pss, 1), "rrd_mb": round(size / 2**20, 2),
+                             # the worker processes in the order they start: the back end, the loop closer
+                             "rss_workers_mb": children,
+                             "map_mb": None if self.map_bytes is None else round(self.map_bytes() / 2**20, 2)})
 
     def close(self) -> None:
         self.inner.close()
@@ -111,6 +118,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     tap = SoakTap(recorder, rrd, window)
     system = System(config, tap, calib=dataset.calib)  # as plvo-viz: the workers start while the recorder does
     system.start(info)
+    tap.map_bytes = lambda: system.map.nbytes() if system.map is not None else 0
     t0 = time.perf_counter()
     try:
         for frame in prefetched(dataset):
@@ -203,7 +211,8 @@ def _rss_at(samples: list[dict], frames: tuple[int, ...]) -> dict[str, dict]:
         near = [s for s in samples if s["frames"] <= f]
         if near:
             out[str(f)] = {"rss_mb": near[-1]["rss_mb"], "rss_tree_mb": near[-1]["rss_tree_mb"],
-                           "pss_tree_mb": near[-1].get("pss_tree_mb"), "at_frames": near[-1]["frames"]}
+                           "pss_tree_mb": near[-1].get("pss_tree_mb"), "map_mb": near[-1].get("map_mb"),
+                           "rss_workers_mb": near[-1].get("rss_workers_mb"), "at_frames": near[-1]["frames"]}
     return out
 
 

@@ -35,6 +35,7 @@ from plvo.config import BackendConfig, LoopConfig
 from plvo.geometry import se3
 from plvo.geometry.camera import project
 from plvo.tracking.map import Observations
+from plvo.tracking.point_budget import budget_share, owner_ranks
 
 log = logging.getLogger(__name__)
 
@@ -88,13 +89,8 @@ def point_budget(point: np.ndarray, keyframe: np.ndarray, max_points: int) -> np
     owner = np.full(point.max() + 1, np.iinfo(np.int64).max)
     np.minimum.at(owner, point, keyframe)
     views = np.bincount(point)
-    owner, views = owner[points], views[points]
-    order = np.lexsort((points, -views, owner))  # by owner, then most viewed, then id
-    owner = owner[order]
-    rank = np.empty(len(points), np.int64)
-    rank[order] = np.arange(len(points)) - np.searchsorted(owner, owner, side="left")
-    share = max(int(np.sort(rank)[max_points]), 1)  # ranks below it: at most max_points (one a keyframe at least)
-    return points[rank < share]
+    rank = owner_ranks(owner[points], views[points], points)
+    return points[rank < budget_share(rank, max_points)]
 
 
 def pose_graph_zeta(cfg: LoopConfig, backend_cfg: BackendConfig) -> float:

@@ -22,6 +22,7 @@ import numpy as np
 
 from plvo.geometry import se3
 from plvo.tracking.columns import Columns, LandmarkTable
+from plvo.tracking.point_budget import budget_share, owner_ranks
 from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, WindowData, corrected_poses,
                                        motion_for, move_points, transform_each)
 
@@ -282,22 +283,26 @@ class LandmarkMap:
             self._lines.cols["alive"][rows[found]] = False
             self.version += 1
 
-    def drop_unreachable(self, frame_index: int, oldest_reachable_kf: int, min_views: int = 2) -> tuple[int, int]:
+    def drop_unreachable(self, frame_index: int, oldest_reachable_kf: int, min_views: int = 2,
+                         global_ba_points: int | None = 0) -> tuple[int, int]:
         """Drop (rows and observations) the landmarks nothing can use any more, and those removed before.
 
         Unreachable: seen by no keyframe from oldest_reachable_kf on (so in no back-end window or tracker search
-        from now on: the caller passes the oldest keyframe any of them may still read), not tracked in this frame
-        or the one before, and, for points, seen by fewer than min_views keyframes (points two keyframes see are
-        kept for the global bundle adjustment after a loop, which adjusts no lines). Most landmarks are such: at
-        900 frames of the town 80 % of the points had one view. Their ids stay valid: reads find them gone, as
-        removed ones. Returns the live (points, lines) dropped."""
+        from now on: the caller passes the oldest keyframe any of them may still read) and not tracked in this
+        frame or the one before; for points, also in no future global bundle adjustment (which adjusts no lines):
+        seen by fewer than min_views keyframes, or, with a budget of global_ba_points (> 0), ranked above the
+        share that budget gives each keyframe now (plvo.tracking.point_budget: no later adjustment picks them,
+        but for its reprojection gate, which may leave out observations of the points it ranks before them).
+        global_ba_points None: there is no global adjustment, 0: it takes every point min_views keyframes see.
+        Most landmarks are such: at 900 frames of the town 80 % of the points had one view. Their ids stay valid:
+        reads find them gone, as removed ones. Returns the live (points, lines) dropped."""
         with self.lock:
             counts = []
             for store, obs, lines in ((self._pts, self._pobs, False), (self._lines, self._lobs, True)):
                 unreachable = store["alive"] & (store["last_kf"] < oldest_reachable_kf) & (
                     store["last_seen_frame"] < frame_index - 1)
-                if not lines:
-                    unreachable &= store["n_obs"] < min_views
+                if not lines and global_ba_points is not None:
+                    unreachable &= ~self._in_global_ba(min_views, global_ba_points)
                 counts.append(int(unreachable.sum()))
                 drop = unreachable | ~store["alive"]
                 if not drop.any():
@@ -311,6 +316,21 @@ class LandmarkMap:
             if any(counts):
                 self.version += 1
             return counts[0], counts[1]
+
+    def _in_global_ba(self, min_views: int, max_points: int) -> np.ndarray:
+        """(n,) bool over the point rows: those a global bundle adjustment with a budget of max_points (0: none)
+        would take now."""
+        multi = self._pts["alive"] & (self._pts["n_obs"] >= min_views)
+        if max_points <= 0:
+            return multi
+        rows = np.flatnonzero(multi)
+        rank = owner_ranks(self._pts["first_kf"][rows], self._pts["n_obs"][rows], self._pts["id"][rows])
+        share = budget_share(rank, max_points)
+        if share is None:
+            return multi
+        picked = np.zeros(self._pts.n, bool)
+        picked[rows[rank <= share]] = True  # the share's own rank too: dropping it could raise a later share
+        return picked
 
     def nbytes(self) -> int:
         """Bytes the map's arrays hold (landmarks, observations, keyframes), capacity included."""
