@@ -44,7 +44,10 @@ def one_error_line(stderr: str) -> str:
 
 
 REPO = Path(__file__).resolve().parents[1]
-VIZ = [sys.executable, "-c", "import sys; from plvo_app.cli import main_viz; sys.exit(main_viz())"]
+# Ctrl-C as a user's terminal gives it: a test runner started in the background by a non-interactive shell has
+# SIGINT ignored, and Python keeps an inherited SIG_IGN, so the signal tests would see no Ctrl-C at all.
+VIZ = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+       "from plvo_app.cli import main_viz; sys.exit(main_viz())"]
 
 
 def viz_env() -> dict[str, str]:

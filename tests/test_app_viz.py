@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from faults_table import VIZ
 from plvo_app.rrd_reader import read_rrd
 
 REPO = Path(__file__).resolve().parents[1]
-VIZ = [sys.executable, "-c", "import sys; from plvo_app.cli import main_viz; sys.exit(main_viz())"]
 FRAMES = list(range(3, 10))
 
 
