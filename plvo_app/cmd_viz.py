@@ -234,17 +234,19 @@ def run(args: argparse.Namespace) -> int:
     except BaseException:
         remove_made(made)
         raise
-    # Made first: its worker processes start up (their imports take a second or two) while the inputs are hashed
-    # and the recorder and viewer start, not while the first frames are tracked.
-    system = System(cfg, FanOut([]), calib=dataset.calib)
+    # Made first: its worker processes start up (their imports take a second or two) while the recorder and the
+    # viewer start, not only while the first frames are tracked.
+    system = None
     try:
+        system = System(cfg, FanOut([]), calib=dataset.calib)
         info = RunInfo(
             name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
             gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
             git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
             extra={"config_toml": config_to_toml(cfg), "dataset": identity, "input_files": input_files(dataset)})
     except BaseException:
-        system.close()
+        if system is not None:
+            system.close()
         runlog.close()
         raise
     viewer = None

@@ -22,9 +22,9 @@ import numpy as np
 
 from plvo.geometry import se3
 from plvo.tracking.columns import Columns, LandmarkTable
-from plvo.tracking.point_budget import budget_share, owner_ranks
 from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, WindowData, corrected_poses,
                                        motion_for, move_points, transform_each)
+from plvo.tracking.point_budget import budget_share, owner_ranks
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits
 
@@ -200,7 +200,7 @@ class LandmarkMap:
         k = int(found.sum())
         if k == 0:
             return
-        # A landmark dropped by `cull_unreachable` (never one the tracker still follows) gets no observation.
+        # A landmark dropped by `drop_unreachable` (never one the tracker still follows) gets no observation.
         values = dict(landmark=ids[found], keyframe=np.full(k, kf_id),
                       feature=np.asarray(feature_idx).reshape(-1)[found], measurement=meas[found])
         if prior is not None:
@@ -264,7 +264,7 @@ class LandmarkMap:
                             obs["measurement"][keep].copy(), obs["prior"][keep].copy())
 
     def mark_seen(self, point_ids: np.ndarray, line_ids: np.ndarray, frame_index: int) -> None:
-        """Stamp the landmarks tracked in frame_index (used to cull landmarks nobody sees any more)."""
+        """Stamp the landmarks tracked in frame_index (`drop_unreachable` keeps what was just tracked)."""
         with self.lock:
             for store, ids in ((self._pts, point_ids), (self._lines, line_ids)):
                 rows, found = store.rows(ids)
@@ -395,7 +395,7 @@ class LandmarkMap:
         first = store["first_kf"]  # non-decreasing: landmarks are made by the newest keyframe
         shape = store.cols[column].shape[1:]
         k = int(np.prod(shape)) // 3  # 3D points a landmark: 1 for points, 2 endpoints for lines
-        rows, ok = store.live_rows(ids)  # landmarks culled since the snapshot are left out
+        rows, ok = store.live_rows(ids)  # landmarks dropped since the snapshot are left out
         rows, refined = rows[ok], np.asarray(refined, float).reshape(-1, *shape)[ok]
         start = int(np.searchsorted(first, changed.min())) if len(changed) else len(first)
         tail = np.arange(start, len(first))
