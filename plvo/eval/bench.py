@@ -291,6 +291,10 @@ class SystemRun:
                "cpu_ms_per_frame": round(1e3 * self.cpu_s / max(self.frames, 1), 2),
                "cpu_share": round(self.cpu_s / max(self.wall_s, 1e-9), 3),  # cores kept busy; 2.0 = both
                "tracking_thread_fps": round(len(step) / max(sum(step), 1e-9), 3),
+               # frames from the 10th on over their steps: the rate once the worker processes are up (their start-up,
+               # ~1-2 s of imports, is waited for at the first keyframe's result, frame 3)
+               "tracking_thread_fps_from_frame_10": (round((len(step) - 10) / max(sum(step[10:]), 1e-9), 3)
+                                                     if len(step) > 10 else None),
                "first_step_ms": round(1e3 * step[0], 1) if step else None,
                "recording_ms_per_frame": stage_stats(rec, source="system")["median_ms"],
                # the recorders' share of the tracking thread's time: less sensitive to a shared machine's load
