@@ -101,7 +101,8 @@ class SoakTap:
         size = self.rrd.stat().st_size if self.rrd is not None and self.rrd.exists() else 0
         self.samples.append({"frames": len(self.frames), "rss_mb": round(own, 1), "rss_tree_mb": round(total, 1),
                              "pss_tree_mb": None if pss is None else round(pss, 1), "rrd_mb": round(size / 2**20, 2),
-                             # the worker processes in the order they start: the back end, the loop closer
+                             # the child processes by pid: multiprocessing's resource tracker, then the worker
+                             # processes in the order they start (the back end, the loop closer)
                              "rss_workers_mb": children,
                              "map_mb": None if self.map_bytes is None else round(self.map_bytes() / 2**20, 2)})
 

@@ -224,7 +224,6 @@ class LoopCloser:
             log.info("loop candidates %s for keyframe %d not verified: %s", list(map(int, det.to_verify)), kf.kf_id,
                      why)
             return (), None, (why,)
-        query = kf
         checks, rejections = [], []
         for cid in det.to_verify:
             far = self._too_far(kf.kf_id, cid)
@@ -233,7 +232,7 @@ class LoopCloser:
                 checks.append(Verification(kf.kf_id, cid, False, np.eye(4), 0, 0, 0, 0, False, 0.0, far, 0.0))
                 rejections.append(f"candidate {cid}: {far}")
                 continue
-            v = verify(query, self.keyframe(cid), self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
+            v = verify(kf, self.keyframe(cid), self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
                        against_odometry=lambda T, c=cid: self._implausible(kf.kf_id, c, T))
             checks.append(v)
             if v.accepted:

@@ -32,18 +32,23 @@ class Columns:
     def keep(self, mask: np.ndarray) -> None:
         """Keep the rows where mask (n,) is True, in order; the capacity shrinks to a quarter more than is kept,
         so that memory follows what the table holds rather than the most it ever held."""
-        kept = {name: self.cols[name][: self.n][mask] for name in self._spec}
-        self.n = int(np.count_nonzero(mask))
-        self._resize(16 + self.n + self.n // 4, kept)
+        kept = int(np.count_nonzero(mask))
+        self._resize(16 + kept + kept // 4, mask)
 
-    def _resize(self, capacity: int, source: dict[str, np.ndarray] | None = None) -> None:
+    def _resize(self, capacity: int, mask: np.ndarray | None = None) -> None:
+        """New arrays of `capacity` rows (callers keep it at 16 or more: row 0 always exists) holding rows [0, n), or
+        only those where mask (n,) is True; n follows."""
+        n = self.n if mask is None else int(np.count_nonzero(mask))
         for name, (shape, dt, fill) in self._spec.items():
-            src = self.cols[name][: self.n] if source is None else source[name]
+            old = self.cols[name][: self.n]
             grown = np.full((capacity, *shape), fill, dtype=dt)
-            grown[: self.n] = src
-            writeable = self.cols[name].flags.writeable
+            if mask is None:
+                grown[:n] = old
+            else:
+                np.compress(mask, old, axis=0, out=grown[:n])
+            grown.flags.writeable = old.flags.writeable
             self.cols[name] = grown
-            grown.flags.writeable = writeable
+        self.n = n
 
     def nbytes(self) -> int:
         return sum(c.nbytes for c in self.cols.values())
@@ -70,7 +75,8 @@ class LandmarkTable(Columns):
         return ids
 
     def rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(k,) ids -> (k,) rows and (k,) bool found; a row where not found is 0 and must not be used."""
+        """(k,) ids -> (k,) rows and (k,) bool found. A row where not found is 0: it indexes `cols` (whose capacity
+        is at least 16) even in an empty table, and what it reads there must not be used."""
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         have = self["id"]
         if len(have) == 0:
@@ -82,4 +88,4 @@ class LandmarkTable(Columns):
     def live_rows(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Like rows, with found only where the landmark is also alive."""
         rows, found = self.rows(ids)
-        return rows, found & self["alive"][rows] if len(self["alive"]) else found
+        return rows, found & self.cols["alive"][rows]

@@ -215,7 +215,7 @@ class LandmarkMap:
         """(k,) ids -> (k,3) world positions; NaN for removed landmarks."""
         with self.lock:
             rows, ok = self._pts.live_rows(ids)
-            out = self._pts["position"][rows] if len(self._pts["position"]) else np.zeros((len(rows), 3))
+            out = self._pts.cols["position"][rows]
             out[~ok] = np.nan
             return out
 
@@ -223,7 +223,7 @@ class LandmarkMap:
         """(k,) ids -> (k,2,3) world endpoints; NaN for removed landmarks."""
         with self.lock:
             rows, ok = self._lines.live_rows(ids)
-            out = self._lines["endpoints"][rows] if len(self._lines["endpoints"]) else np.zeros((len(rows), 2, 3))
+            out = self._lines.cols["endpoints"][rows]
             out[~ok] = np.nan
             return out
 
@@ -238,12 +238,12 @@ class LandmarkMap:
     def point_descriptors(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids of live landmarks -> (k,32) ORB descriptors."""
         with self.lock:
-            return self._pts["descriptor"][self._pts.rows(ids)[0]]
+            return self._pts.cols["descriptor"][self._pts.rows(ids)[0]]
 
     def line_descriptors(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids of live landmarks -> (k,32) LBD descriptors."""
         with self.lock:
-            return self._lines["descriptor"][self._lines.rows(ids)[0]]
+            return self._lines.cols["descriptor"][self._lines.rows(ids)[0]]
 
     def point_observations(self, ids: np.ndarray | None = None) -> Observations:
         """Observations of the given point landmarks (all when None) that are still alive."""
