@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import re
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,18 @@ REPO = Path(__file__).resolve().parents[1]
 # SIGINT ignored, and Python keeps an inherited SIG_IGN, so the signal tests would see no Ctrl-C at all.
 VIZ = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
        "from plvo_app.cli import main_viz; sys.exit(main_viz())"]
+
+
+def read_stderr_until(p, text: str, timeout: float = 120) -> str:
+    """What a subprocess wrote to stderr up to `text` (a log line: tqdm may skip drawing any count on a fast run)."""
+    seen, t0 = "", time.time()
+    while text not in seen and time.time() - t0 < timeout:
+        ch = p.stderr.read(1)
+        if not ch:
+            break
+        seen += ch
+    assert text in seen, seen[-2000:]
+    return seen
 
 
 def viz_env() -> dict[str, str]:

@@ -11,13 +11,12 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from faults_table import VIZ
+from faults_table import read_stderr_until, VIZ
 from plvo_app.rrd_reader import read_rrd
 
 REPO = Path(__file__).resolve().parents[1]
@@ -142,10 +141,7 @@ def test_second_run_never_overwrites(kitti_run, monkeypatch):
 def test_ctrl_c_keeps_a_readable_recording(kitti_root, tmp_path):
     cmd = ["--root", str(kitti_root), "--seq", "04", "--no-serve", "--rrd", "cut.rrd", "--out", "out"]
     p = subprocess.Popen(VIZ + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE, text=True)
-    seen = ""
-    t0 = time.time()
-    while "3/51" not in seen and time.time() - t0 < 120:  # wait until a few frames are in
-        seen += p.stderr.read(1)
+    seen = read_stderr_until(p, "frame 3: keyframe")  # a few frames are in
     p.send_signal(signal.SIGINT)
     err = seen + p.stderr.read()
     assert p.wait(timeout=120) == 130, err

@@ -7,10 +7,9 @@ import json
 import signal
 import socket
 import subprocess
-import time
 from pathlib import Path
 
-from faults_table import fault, VIZ, viz_env
+from faults_table import fault, read_stderr_until as _read_until, VIZ, viz_env
 from plvo_app.rrd_reader import read_rrd
 
 _env = viz_env
@@ -19,17 +18,6 @@ _env = viz_env
 def _start(synth_seq: Path, cwd: Path, *extra: str) -> subprocess.Popen:
     cmd = ["--root", str(synth_seq), "--seq", "00", "--rrd", "run.rrd", "--out", "out", *extra]
     return subprocess.Popen(VIZ + cmd, cwd=cwd, env=_env(), stderr=subprocess.PIPE, text=True)
-
-
-def _read_until(p: subprocess.Popen, text: str, timeout: float = 120) -> str:
-    seen, t0 = "", time.time()
-    while text not in seen and time.time() - t0 < timeout:
-        ch = p.stderr.read(1)
-        if not ch:
-            break
-        seen += ch
-    assert text in seen, seen[-2000:]
-    return seen
 
 
 def _check_interrupted(cwd: Path, err: str, reason: str) -> None:
@@ -46,7 +34,7 @@ def _check_interrupted(cwd: Path, err: str, reason: str) -> None:
 def test_sigterm_is_handled_like_ctrl_c(synth_seq, tmp_path):
     row = fault("sigterm")
     p = _start(synth_seq, tmp_path, "--no-serve")
-    seen = _read_until(p, "frame 3: keyframe")  # a log line: tqdm may skip drawing 3/20 on a fast run
+    seen = _read_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGTERM)
     err = seen + p.stderr.read()
     assert p.wait(timeout=120) == row.exit, err
@@ -58,7 +46,7 @@ def test_sigint_twice_keeps_the_results(synth_seq, tmp_path):
     """The second Ctrl-C arrives while the recording is closed and the results written: it is noted, not obeyed."""
     row = fault("sigint")
     p = _start(synth_seq, tmp_path, "--no-serve")
-    seen = _read_until(p, "frame 3: keyframe")  # a log line: tqdm may skip drawing 3/20 on a fast run
+    seen = _read_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGINT)
     seen += _read_until(p, row.message)
     p.send_signal(signal.SIGINT)
