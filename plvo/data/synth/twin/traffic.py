@@ -210,8 +210,15 @@ class Traffic:
         else:
             uniq, inv = np.unique(np.asarray(times, np.float64), return_inverse=True)
             inv = inv.ravel()
-        dnorm = np.linalg.norm(dirs, axis=1)
-        o_lo, o_hi = origins.min(axis=0), origins.max(axis=0)
+        unit = dirs / np.sqrt(np.einsum("ij,ij->i", dirs, dirs))[:, None]
+        one_origin = origins.strides[0] == 0  # a camera's rays, from np.broadcast_to: no reduction over n rows
+        o_lo, o_hi = (origins[0], origins[0]) if one_origin else (origins.min(axis=0), origins.max(axis=0))
+        # A mover's bounding sphere (centre C, radius r) is near a ray o + s u when |C - o|^2 - ((C - o).u)^2 < r^2.
+        # At one instant C is one point, so the per-ray terms are expanded once here and each mover costs a matrix-
+        # vector product (the camera: one origin, so one product over the directions; shadow rays: one per mover).
+        if len(uniq) == 1:
+            o_dot_u = unit @ o_lo if one_origin else np.einsum("ij,ij->i", origins, unit)
+            o_dot_o = float(o_lo @ o_lo) if one_origin else np.einsum("ij,ij->i", origins, origins)
         for m in self.movers:
             T, alive = self.pose(m, uniq)
             L, W, H = self.size(m)
@@ -221,9 +228,15 @@ class Traffic:
             if not alive.any():
                 continue
             centre = T[:, :3, 3] + 0.5 * H * T[:, :3, 2]
-            c = centre[inv] - origins
-            b = np.einsum("ij,ij->i", c, dirs) / dnorm
-            near = alive[inv] & (b > -radius) & (np.einsum("ij,ij->i", c, c) - b * b < radius * radius)
+            if len(uniq) == 1:
+                C = centre[0]
+                b = unit @ C - o_dot_u
+                c_dot_c = C @ C - 2.0 * (o_lo @ C if one_origin else origins @ C) + o_dot_o
+                near = (b > -radius) & (c_dot_c - b * b < radius * radius)
+            else:
+                c = centre[inv] - origins
+                b = np.einsum("ij,ij->i", c, unit)
+                near = alive[inv] & (b > -radius) & (np.einsum("ij,ij->i", c, c) - b * b < radius * radius)
             k = np.flatnonzero(near)
             if not len(k):
                 continue
