@@ -108,3 +108,50 @@ def test_the_stage_of_a_killed_run_is_cleared(tmp_path, kitti_root):
     assert not dead.exists() and not list(tmp_path.glob(".twin-*"))
     assert (tmp_path / "poses" / "05.txt").read_text() != before
     assert len(list((tmp_path / "sequences" / "05" / "velodyne").glob("*.bin"))) == 2
+
+
+def test_a_stopped_twin_resumes_where_it_stopped(tmp_path, kitti_root):
+    """A run stopped part-way leaves its stage; the next run with the same settings renders only the frames it
+    lacks, and the twin is the same, file for file, as one written in one go. A stage of other settings is
+    removed by the next run, and one that another process holds is refused."""
+    import filecmp
+
+    from plvo.data.synth.generate import _stage_lock
+    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+
+    settings = TwinSettings(str(kitti_root / "poses" / "07.txt"), "60:66", traffic=6)
+    whole = tmp_path / "whole"
+    generate_twin(whole, "07", settings)
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_3(done, n):
+        if done >= 3:
+            raise Stop
+
+    cut = tmp_path / "cut"
+    with pytest.raises(Stop):
+        generate_twin(cut, "07", settings, progress=stop_after_3)
+    (stage,) = cut.glob(".twin-07-partial-*")
+    assert not (cut / "sequences" / "07").exists()  # complete or absent
+    kept = len(list((stage / ".frames").glob("*.json")))
+    assert 3 <= kept < 6
+    reports = []
+    with _stage_lock(stage, wait=False) as held:  # another process writing it
+        assert held
+        with pytest.raises(SynthError, match="another process is writing sequence 07"):
+            generate_twin(cut, "07", settings)
+    generate_twin(cut, "07", settings, progress=lambda d, n: reports.append(d))
+    assert reports[0] == kept and reports[-1] == 6 and len(reports) == 1 + 6 - kept
+    assert not list(cut.glob(".twin-*"))
+    a, b = whole / "sequences" / "07", cut / "sequences" / "07"
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file()) and len(files) > 6 * 5
+    assert all(filecmp.cmp(a / f, b / f, shallow=False) for f in files)
+    with pytest.raises(Stop):
+        generate_twin(cut, "07", TwinSettings(settings.follow, "66:72", traffic=6), progress=stop_after_3,
+                      overwrite=True)
+    assert len(list(cut.glob(".twin-07-partial-*"))) == 1
+    generate_twin(cut, "07", TwinSettings(settings.follow, "70:72", traffic=6), overwrite=True)
+    assert not list(cut.glob(".twin-*"))  # the 66:72 stage went with the run of other settings

@@ -13,6 +13,7 @@ Everything is staged in a hidden directory beside the target and renamed into pl
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -276,7 +277,6 @@ def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed:
 def write_staged(out_root: Path, sequence: str, prefix: str, write: Callable[[Path], None]) -> None:
     """Run write(stage) into a staging folder beside out_root/sequences and move sequence NN and its poses file in
     when it returns: a sequence folder is complete or absent, and a replaced one is removed only then."""
-    target = out_root / "sequences" / sequence
     out_root.mkdir(parents=True, exist_ok=True)
     remove_stale_stages(out_root, f"{prefix}{sequence}-")
     # The pid in the name: a stage left by a killed run (SIGKILL, power loss) is removed by the next run once its
@@ -284,11 +284,57 @@ def write_staged(out_root: Path, sequence: str, prefix: str, write: Callable[[Pa
     stage = Path(tempfile.mkdtemp(prefix=f"{prefix}{sequence}-{os.getpid()}-", dir=out_root))
     try:
         write(stage)
-        (out_root / "sequences").mkdir(exist_ok=True)
-        (out_root / "poses").mkdir(exist_ok=True)
-        if target.exists():
-            target.rename(stage / "old-sequence")
-        os.replace(stage / "poses" / f"{sequence}.txt", out_root / "poses" / f"{sequence}.txt")
-        (stage / "sequences" / sequence).rename(target)  # last: a sequence directory is always complete
+        _move_in(stage, out_root, sequence)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def write_resumable(out_root: Path, sequence: str, prefix: str, key: str, write: Callable[[Path], None]) -> None:
+    """As write_staged, but the staging folder is named by `key` (what determines the files) and kept when write
+    fails or the run is stopped, so that the next run with the same key carries on in it (write must skip what is
+    already complete there). Stages of other keys for this sequence are removed; a stage another process is
+    writing is refused."""
+    out_root.mkdir(parents=True, exist_ok=True)
+    remove_stale_stages(out_root, f"{prefix}{sequence}-")
+    stage = out_root / f"{prefix}{sequence}-partial-{key}"
+    for other in out_root.glob(f"{prefix}{sequence}-partial-*"):
+        if other != stage and other.is_dir():
+            with _stage_lock(other, wait=False) as free:
+                if free:
+                    shutil.rmtree(other, ignore_errors=True)
+    stage.mkdir(exist_ok=True)
+    with _stage_lock(stage, wait=False) as free:
+        if not free:
+            raise SynthError(f"{stage}: another process is writing sequence {sequence} there")
+        write(stage)
+        _move_in(stage, out_root, sequence)
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+class _stage_lock:
+    """An exclusive flock on stage/.lock for the `with` block; `as` gives whether it was had (wait=False)."""
+
+    def __init__(self, stage: Path, wait: bool = True):
+        self.path, self.wait, self.fd = stage / ".lock", wait, None
+
+    def __enter__(self) -> bool:
+        self.fd = os.open(self.path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | (0 if self.wait else fcntl.LOCK_NB))
+            return True
+        except BlockingIOError:
+            return False
+
+    def __exit__(self, *exc) -> None:
+        os.close(self.fd)  # releases the lock
+
+
+def _move_in(stage: Path, out_root: Path, sequence: str) -> None:
+    """Move stage/sequences/NN and stage/poses/NN.txt into out_root, replacing an older sequence NN last."""
+    target = out_root / "sequences" / sequence
+    (out_root / "sequences").mkdir(exist_ok=True)
+    (out_root / "poses").mkdir(exist_ok=True)
+    if target.exists():
+        target.rename(stage / "old-sequence")
+    os.replace(stage / "poses" / f"{sequence}.txt", out_root / "poses" / f"{sequence}.txt")
+    (stage / "sequences" / sequence).rename(target)  # last: a sequence directory is always complete

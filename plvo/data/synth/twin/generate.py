@@ -10,12 +10,17 @@ Beside the town's files (see plvo.data.synth.generate) a twin's gt/ holds, per f
                                (t - 0.05, t, t + 0.05 s), its 2D box in cam0 and its pixel and return counts
   gt/scene.json                settings, the followed file and range, lidar model, sun, exposure gains, zones
 The poses file equals the followed rows (re-based on frame A when the range starts later, see twin.follow).
+A twin is written in a staging folder named by its settings and moved in when complete; a run that is stopped
+leaves that folder, and the next run with the same settings renders only the frames it lacks (a long twin takes
+an hour or more).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import shutil
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -25,7 +30,7 @@ import cv2
 import numpy as np
 
 from plvo.data.synth import sensors
-from plvo.data.synth.generate import check_sequence_name, check_target, write_staged
+from plvo.data.synth.generate import check_sequence_name, check_target, write_resumable
 from plvo.data.synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE
 from plvo.data.synth.textures import build_atlas
 from plvo.data.synth.twin.follow import FollowedPath, PoseInterpolator, load_followed
@@ -179,6 +184,17 @@ def write_twin(root: Path, sequence: str, settings: TwinSettings,
     T_world_town = np.linalg.inv(twin.path.T_town_world)
     gains = [0.0] * n
     boxes: list[dict | None] = [None] * n
+    # A frame is complete when its marker is there (written after its files): a stopped run resumes from those.
+    done_dir = root / ".frames"
+    done_dir.mkdir(exist_ok=True)
+    for marker in done_dir.glob("*.json"):
+        i = int(marker.stem)
+        if i < n:
+            kept = json.loads(marker.read_text())
+            gains[i], boxes[i] = kept["gain"], kept["boxes"]
+    todo = [i for i in range(n) if boxes[i] is None]
+    if len(todo) < n:
+        log.info("twin %s: resuming, %d of %d frames already written", sequence, n - len(todo), n)
 
     def frame(i: int) -> None:
         rng = np.random.default_rng(np.random.SeedSequence([twin.seed, 5, i]))
@@ -195,11 +211,16 @@ def write_twin(root: Path, sequence: str, settings: TwinSettings,
         if settings.write_depth:
             np.save(seq / "gt" / "depth" / f"{name}.npy", depth)
         boxes[i] = _boxes(twin, i, ids, lidar_ids, T_world_town)
+        marker = done_dir / f"{name}.json"
+        marker.with_suffix(".part").write_text(json.dumps({"gain": gains[i], "boxes": boxes[i]}))
+        marker.with_suffix(".part").replace(marker)
 
     with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
         pending = []
-        done = 0
-        for i in range(n):
+        done = n - len(todo)
+        if done and progress is not None:
+            progress(done, n)
+        for i in todo:
             pending.append(pool.submit(frame, i))
             if len(pending) > RENDER_THREADS:
                 pending.pop(0).result()
@@ -211,6 +232,7 @@ def write_twin(root: Path, sequence: str, settings: TwinSettings,
             done += 1
             if progress is not None:
                 progress(done, n)
+    shutil.rmtree(done_dir)
     (seq / "gt" / "boxes.jsonl").write_text("".join(json.dumps(b) + "\n" for b in boxes))
     _write_ground_truth(seq / "gt", settings, twin, gains)
 
@@ -225,8 +247,11 @@ def check_twin_request(out_root: Path, sequence: str, settings: TwinSettings, ov
 
 def generate_twin(out_root, sequence: str, settings: TwinSettings,
                   progress: Callable[[int, int], None] | None = None, overwrite: bool = False) -> Path:
-    """Write twin NN under out_root (KITTI odometry layout), staged beside it and renamed in when complete."""
+    """Write twin NN under out_root (KITTI odometry layout), staged beside it and renamed in when complete; a stage
+    of the same settings left by a stopped run is carried on."""
     out_root = Path(out_root)
     check_twin_request(out_root, sequence, settings, overwrite)
-    write_staged(out_root, sequence, ".twin-", lambda stage: write_twin(stage, sequence, settings, progress))
+    key = hashlib.sha1(json.dumps([TWIN_VERSION, sequence, asdict(settings)], sort_keys=True).encode()).hexdigest()
+    write_resumable(out_root, sequence, ".twin-", key[:12],
+                    lambda stage: write_twin(stage, sequence, settings, progress))
     return out_root
