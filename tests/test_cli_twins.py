@@ -138,7 +138,7 @@ def test_a_stopped_twin_resumes_where_it_stopped(tmp_path, kitti_root):
     kept = len(list((stage / ".frames").glob("*.json")))
     assert 3 <= kept < 6
     reports = []
-    with _stage_lock(stage, wait=False) as held:  # another process writing it
+    with _stage_lock(stage) as held:  # another process writing it
         assert held
         with pytest.raises(SynthError, match="another process is writing sequence 07"):
             generate_twin(cut, "07", settings)

@@ -13,6 +13,7 @@ Everything is staged in a hidden directory beside the target and renamed into pl
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import logging
@@ -20,7 +21,7 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -299,11 +300,11 @@ def write_resumable(out_root: Path, sequence: str, prefix: str, key: str, write:
     stage = out_root / f"{prefix}{sequence}-partial-{key}"
     for other in out_root.glob(f"{prefix}{sequence}-partial-*"):
         if other != stage and other.is_dir():
-            with _stage_lock(other, wait=False) as free:
+            with _stage_lock(other) as free:
                 if free:
                     shutil.rmtree(other, ignore_errors=True)
     stage.mkdir(exist_ok=True)
-    with _stage_lock(stage, wait=False) as free:
+    with _stage_lock(stage) as free:
         if not free:
             raise SynthError(f"{stage}: another process is writing sequence {sequence} there")
         write(stage)
@@ -311,22 +312,19 @@ def write_resumable(out_root: Path, sequence: str, prefix: str, key: str, write:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-class _stage_lock:
-    """An exclusive flock on stage/.lock for the `with` block; `as` gives whether it was had (wait=False)."""
-
-    def __init__(self, stage: Path, wait: bool = True):
-        self.path, self.wait, self.fd = stage / ".lock", wait, None
-
-    def __enter__(self) -> bool:
-        self.fd = os.open(self.path, os.O_CREAT | os.O_RDWR, 0o644)
+@contextlib.contextmanager
+def _stage_lock(stage: Path) -> Iterator[bool]:
+    """An exclusive flock on stage/.lock for the `with` block, if free: `as` gives whether it was had."""
+    fd = os.open(stage / ".lock", os.O_CREAT | os.O_RDWR, 0o644)
+    try:
         try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | (0 if self.wait else fcntl.LOCK_NB))
-            return True
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held = True
         except BlockingIOError:
-            return False
-
-    def __exit__(self, *exc) -> None:
-        os.close(self.fd)  # releases the lock
+            held = False
+        yield held
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _move_in(stage: Path, out_root: Path, sequence: str) -> None:
