@@ -267,3 +267,52 @@ def test_ground_follows_the_trajectorys_height(twin_root, kitti_root):
     layout = Layout(path.context_road, path.file_road, path.file_speed, 0, path.context_real)
     cam = path.T_town_cam[:, :3, 3]
     assert (cam[:, 2] - layout.height(cam[:, :2])).min() > 1.0
+
+
+def _cast_every_ray(traffic, origins, dirs, times):
+    """Reference for Traffic.cast's nearest mover hit: every ray against every live mover's mesh, no sphere test."""
+    import open3d as o3d
+
+    t_best, ids = np.full(len(dirs), np.inf, np.float32), np.zeros(len(dirs), np.uint16)
+    uniq, inv = np.unique(np.broadcast_to(np.asarray(times, np.float64), len(dirs)), return_inverse=True)
+    for m in traffic.movers:
+        T, alive = traffic.pose(m, uniq)
+        T, ok = T[inv.ravel()], alive[inv.ravel()]
+        o_body = np.einsum("kji,kj->ki", T[:, :3, :3], origins - T[:, :3, 3])
+        d_body = np.einsum("kji,kj->ki", T[:, :3, :3], dirs)
+        rays = o3d.core.Tensor.from_numpy(np.concatenate([o_body, d_body], axis=1).astype(np.float32))
+        th = np.where(ok, traffic.scenes[m.shape].cast_rays(rays)["t_hit"].numpy(), np.inf)
+        better = th < t_best
+        t_best[better], ids[better] = th[better], m.id
+    return t_best, ids
+
+
+def test_mover_casts_keep_every_hit(kitti_root):
+    """Traffic.cast tests each mover's bounding sphere before casting into its mesh (one matrix-vector product a
+    mover when the rays share an instant); no hit of the camera's rays (one origin), of rays from many origins at
+    one instant (shadow rays) or of a rolling sweep (a time a column) may be lost by it."""
+    from plvo.data.synth.twin.follow import PoseInterpolator
+    from plvo.data.synth.twin.generate import TwinSettings, build_twin
+
+    twin = build_twin(TwinSettings(str(kitti_root / "poses" / f"{SEQ}.txt"), "60:80", traffic=8), SEQ)
+    r, traffic = twin.renderer, twin.traffic
+    poses = PoseInterpolator(twin.path.T_town_cam)
+    hits = 0
+    for i in (0, 10, 19):
+        T, t = twin.path.T_town_cam[i], i * sensors.FRAME_DT
+        dirs = r._cast(r._cam_dirs, T)[3][:, 3:].astype(np.float64)
+        origin = np.broadcast_to(T[:3, 3].astype(np.float64), dirs.shape)
+        want_t, want_ids = _cast_every_ray(traffic, origin, dirs, t)
+        for o, when in ((origin, t), (np.array(origin), np.full(len(dirs), t))):  # one origin; many, one instant
+            got_t, got_ids = traffic.cast(o, dirs, when)[:2]
+            np.testing.assert_array_equal(got_ids, want_ids)
+            np.testing.assert_allclose(got_t, want_t, rtol=1e-6)
+        hits += int((want_ids > 0).sum())
+        T_cols = poses(t + r._lidar_dt[:: r._beams]) @ sensors.T_CAM_VELO
+        o = np.repeat(T_cols[:, :3, 3], r._beams, axis=0)
+        d = np.einsum("kij,kj->ki", np.repeat(T_cols[:, :3, :3], r._beams, axis=0), r._lidar_dirs.astype(np.float64))
+        want_t, want_ids = _cast_every_ray(traffic, o, d, t + r._lidar_dt)
+        got_t, got_ids = traffic.cast(o, d, t + r._lidar_dt)[:2]
+        np.testing.assert_array_equal(got_ids, want_ids)
+        hits += int((want_ids > 0).sum())
+    assert hits > 1000, hits  # movers were in view
