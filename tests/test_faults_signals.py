@@ -9,7 +9,7 @@ import socket
 import subprocess
 from pathlib import Path
 
-from faults_table import fault, read_stderr_until as _read_until, VIZ, viz_env
+from faults_table import fault, read_stderr_until, VIZ, viz_env
 from plvo_app.rrd_reader import read_rrd
 
 _env = viz_env
@@ -34,7 +34,7 @@ def _check_interrupted(cwd: Path, err: str, reason: str) -> None:
 def test_sigterm_is_handled_like_ctrl_c(synth_seq, tmp_path):
     row = fault("sigterm")
     p = _start(synth_seq, tmp_path, "--no-serve")
-    seen = _read_until(p, "frame 3: keyframe")
+    seen = read_stderr_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGTERM)
     err = seen + p.stderr.read()
     assert p.wait(timeout=120) == row.exit, err
@@ -46,9 +46,9 @@ def test_sigint_twice_keeps_the_results(synth_seq, tmp_path):
     """The second Ctrl-C arrives while the recording is closed and the results written: it is noted, not obeyed."""
     row = fault("sigint")
     p = _start(synth_seq, tmp_path, "--no-serve")
-    seen = _read_until(p, "frame 3: keyframe")
+    seen = read_stderr_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGINT)
-    seen += _read_until(p, row.message)
+    seen += read_stderr_until(p, row.message)
     p.send_signal(signal.SIGINT)
     err = seen + p.stderr.read()
     assert p.wait(timeout=120) == row.exit, err
@@ -65,7 +65,7 @@ def _free_port() -> int:
 def test_quitting_the_viewer_after_a_complete_run(synth_seq, tmp_path):
     row = fault("viewer-quit")
     p = _start(synth_seq, tmp_path, "--frames", "0:4", "--port", str(_free_port()))
-    seen = _read_until(p, "serving the run: http://127.0.0.1:")
+    seen = read_stderr_until(p, "serving the run: http://127.0.0.1:")
     p.send_signal(signal.SIGINT)
     err = seen + p.stderr.read()
     assert p.wait(timeout=120) == row.exit, err

@@ -166,7 +166,8 @@ def _write_ground_truth(gt: Path, settings: TwinSettings, twin: Twin, gains: lis
 
 def write_twin(root: Path, sequence: str, settings: TwinSettings,
                progress: Callable[[int, int], None] | None = None, twin: Twin | None = None) -> None:
-    """Render every file of one twin into `root` (a fresh directory, not yet visible to readers)."""
+    """Render every file of one twin into `root` (its stage, not yet visible to readers), skipping the frames a
+    stopped run already finished there (marked in root/.frames)."""
     twin = twin or build_twin(settings, sequence)
     seq = root / "sequences" / sequence
     subs = ["image_0", "velodyne", "gt/movers", "gt/lidar_movers", "gt/shadow_edges"]
