@@ -122,7 +122,21 @@ class System:
         return None if self._frontend is None else self._frontend.map
 
     def start(self, info: RunInfo) -> None:
+        """Start the recorders, then wait for the workers to be ready (see `wait_ready`)."""
         self.recorder.on_run_start(info)
+        self.wait_ready()
+
+    def wait_ready(self) -> None:
+        """Wait until the worker processes have made their cores (their imports: ~1-2 s on two cores, which the
+        recorders' and viewer's start-up hides in part), so that the first frames are not timed waiting for them;
+        the wait is timed as `workers_ready` (seconds, once). A worker that cannot start raises WorkerError here."""
+        if "workers_ready" in self.timings or self._frontend is None:
+            return
+        t0 = time.perf_counter()
+        for worker in (self._backend, self._loop):
+            if worker is not None:
+                worker.wait_ready()
+        self.timings["workers_ready"].append(time.perf_counter() - t0)
 
     def _build(self, calib: Calibration) -> None:
         from plvo.backend.worker import BackendCore

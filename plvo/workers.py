@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 MODES = ("inline", "thread", "process")
 _STOP = None
+_READY = "ready"  # a worker process's first message: its core is made (its imports done)
 
 
 def _describe(job: Any) -> str:
@@ -80,6 +81,8 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int) -> None:
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
         outputs.put((_Failure(None, exc), capture.records))
         return
+    outputs.put((_READY, capture.records))
+    capture.records = []
     while True:
         job = jobs.get()
         if job is _STOP:
@@ -106,6 +109,7 @@ class OrderedWorker:
         self._thread: threading.Thread | None = None
         self._proc = None
         self._failed: str = ""
+        self._ready = mode != "process"
         if mode == "inline":
             self._core = factory(*args)
         elif mode == "thread":
@@ -121,6 +125,18 @@ class OrderedWorker:
             self._proc = ctx.Process(target=_serve, args=(self._jobs, self._outputs, factory, args, level),
                                      name=f"plvo-{name}", daemon=True)
             self._proc.start()
+
+    def wait_ready(self) -> None:
+        """Wait until the core is made: a worker process has imported its libraries (a second or two of the first
+        job's time otherwise) and made its core, or failed to (WorkerError, one line)."""
+        while not self._ready:
+            out, records = self._next("its start")
+            self._relog(records)
+            if isinstance(out, _Failure):
+                self._failed = f"the {self.name} failed to start: {out.message}"
+                log.debug("%s worker traceback:\n%s", self.name, out.trace)
+                raise WorkerError(self._failed)
+            self._ready = out == _READY
 
     @property
     def pending(self) -> int:
@@ -148,26 +164,34 @@ class OrderedWorker:
         job = self._outstanding.popleft()
         if self.mode == "inline":
             return self._done.popleft()
-        out, records = self._wait(job)
-        for name, level, msg in records:
-            logging.getLogger(name).log(level, "%s", msg)
+        self.wait_ready()
+        out, records = self._next(_describe(job))
+        self._relog(records)
         if isinstance(out, _Failure):
             self._failed = f"the {self.name} failed on {out.where or _describe(job)}: {out.message}"
             log.debug("%s worker traceback:\n%s", self.name, out.trace)
             raise WorkerError(self._failed)
         return out
 
-    def _wait(self, job: Any) -> tuple[Any, list]:
+    @staticmethod
+    def _relog(records: list) -> None:
+        for name, level, msg in records:
+            logging.getLogger(name).log(level, "%s", msg)
+
+    def _next(self, what: str) -> tuple[Any, list]:
+        """The worker's next message; WorkerError when it ended before `what`."""
+        if self._failed:
+            raise WorkerError(self._failed)
         while True:
             try:
                 return self._outputs.get(timeout=1.0)
             except queue.Empty:
                 if self._proc is not None and not self._proc.is_alive():
                     self._failed = (f"the {self.name} worker process ended (exit code {self._proc.exitcode}) "
-                                    f"before {_describe(job)}")
+                                    f"before {what}")
                     raise WorkerError(self._failed) from None
                 if self._thread is not None and not self._thread.is_alive():
-                    self._failed = f"the {self.name} thread ended before {_describe(job)}"
+                    self._failed = f"the {self.name} thread ended before {what}"
                     raise WorkerError(self._failed) from None
 
     def _run_thread(self) -> None:

@@ -118,6 +118,8 @@ def test_poses_written_and_close_to_ground_truth(kitti_run, kitti_root):
     timings = json.loads((out / "timings.json").read_text())
     assert timings["status"] == "complete" and timings["frames_done"] == 7
     assert timings["stages"]["total"]["runs"] == 7 and timings["frames_per_second"] > 0
+    # the worker processes' start-up is waited for once, before the first frame (and the frames-a-second clock)
+    assert timings["stages"]["workers_ready"]["runs"] == 1
     assert (out / "config.toml").read_text().startswith("[orb]")
     assert "frame/s" in proc.stderr or "s/frame" in proc.stderr  # the progress bar
 

@@ -78,3 +78,43 @@ def test_inline_failure_is_the_same_line():
     w = OrderedWorker("loop closer", RunningSum, (0,), "inline")
     with pytest.raises(WorkerError, match="the loop closer failed on keyframe -1 at frame 0: ValueError"):
         w.submit(Job(-1, 0))
+
+
+class StartsSlowly(RunningSum):
+    """A core whose making logs (as a worker's imports and set-up may) and may fail."""
+
+    def __init__(self, start: int):
+        if start < 0:
+            raise ImportError("no module named 'open3d'")
+        logging.getLogger("plvo.test_core").info("core made at %d", start)
+        super().__init__(start)
+
+
+def test_wait_ready_returns_once_the_core_is_made(caplog):
+    with caplog.at_level(logging.INFO, logger="plvo"):
+        w = OrderedWorker("summer", StartsSlowly, (5,), "process")
+        try:
+            w.wait_ready()
+            assert "core made at 5" in caplog.text  # the worker's start-up logs arrive with the ready message
+            w.wait_ready()  # again: nothing left to wait for
+            w.submit(Job(2, 6))
+            assert w.take() == 7
+        finally:
+            w.close()
+
+
+@pytest.mark.parametrize("wait_first", [True, False])
+def test_a_core_that_cannot_be_made_is_one_line_at_start(wait_first):
+    w = OrderedWorker("back end", StartsSlowly, (-1,), "process")
+    try:
+        with pytest.raises(WorkerError) as err:
+            if wait_first:
+                w.wait_ready()
+            else:  # take() waits for the start first: the same line
+                w.submit(Job(1, 3))
+                w.take()
+        assert str(err.value) == "the back end failed to start: ImportError: no module named 'open3d'"
+        with pytest.raises(WorkerError):
+            w.submit(Job(1, 3))
+    finally:
+        w.close()
