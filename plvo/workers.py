@@ -136,7 +136,11 @@ class OrderedWorker:
                 self._failed = f"the {self.name} failed to start: {out.message}"
                 log.debug("%s worker traceback:\n%s", self.name, out.trace)
                 raise WorkerError(self._failed)
-            self._ready = out == _READY
+            if not (isinstance(out, str) and out == _READY):  # e.g. a worker of another plvo version
+                self._failed = (f"the {self.name} worker sent an output ({type(out).__name__}) before saying it "
+                                "was ready")
+                raise WorkerError(self._failed)
+            self._ready = True
 
     @property
     def pending(self) -> int:

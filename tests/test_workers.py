@@ -118,3 +118,17 @@ def test_a_core_that_cannot_be_made_is_one_line_at_start(wait_first):
             w.submit(Job(1, 3))
     finally:
         w.close()
+
+
+def test_a_worker_that_never_says_ready_is_refused():
+    """A worker process that sends an output before its "ready" (a worker of another plvo version) is one line, not
+    an output taken for the first job's."""
+    w = OrderedWorker("back end", RunningSum, (0,), "process")
+    try:
+        w.wait_ready()
+        w._ready = False  # as a parent of this version meeting a worker that does not announce itself
+        w.submit(Job(4, 12))
+        with pytest.raises(WorkerError, match=r"the back end worker sent an output \(int\) before saying it was ready"):
+            w.take()
+    finally:
+        w.close()
