@@ -133,13 +133,10 @@ class OrderedWorker:
             out, records = self._next("its start")
             self._relog(records)
             if isinstance(out, _Failure):
-                self._failed = f"the {self.name} failed to start: {out.message}"
-                log.debug("%s worker traceback:\n%s", self.name, out.trace)
-                raise WorkerError(self._failed)
+                raise self._failure(f"the {self.name} failed to start: {out.message}", out.trace)
             if not (isinstance(out, str) and out == _READY):  # e.g. a worker of another plvo version
-                self._failed = (f"the {self.name} worker sent an output ({type(out).__name__}) before saying it "
-                                "was ready")
-                raise WorkerError(self._failed)
+                raise self._failure(f"the {self.name} worker sent an output ({type(out).__name__}) before saying it "
+                                    "was ready")
             self._ready = True
 
     @property
@@ -172,10 +169,15 @@ class OrderedWorker:
         out, records = self._next(_describe(job))
         self._relog(records)
         if isinstance(out, _Failure):
-            self._failed = f"the {self.name} failed on {out.where or _describe(job)}: {out.message}"
-            log.debug("%s worker traceback:\n%s", self.name, out.trace)
-            raise WorkerError(self._failed)
+            raise self._failure(f"the {self.name} failed on {out.where or _describe(job)}: {out.message}", out.trace)
         return out
+
+    def _failure(self, message: str, trace: str = "") -> WorkerError:
+        """Mark the worker failed for good (later calls raise the same line) -> the error to raise."""
+        self._failed = message
+        if trace:
+            log.debug("%s worker traceback:\n%s", self.name, trace)
+        return WorkerError(message)
 
     @staticmethod
     def _relog(records: list) -> None:
@@ -191,12 +193,10 @@ class OrderedWorker:
                 return self._outputs.get(timeout=1.0)
             except queue.Empty:
                 if self._proc is not None and not self._proc.is_alive():
-                    self._failed = (f"the {self.name} worker process ended (exit code {self._proc.exitcode}) "
-                                    f"before {what}")
-                    raise WorkerError(self._failed) from None
+                    raise self._failure(f"the {self.name} worker process ended (exit code {self._proc.exitcode}) "
+                                        f"before {what}") from None
                 if self._thread is not None and not self._thread.is_alive():
-                    self._failed = f"the {self.name} thread ended before {what}"
-                    raise WorkerError(self._failed) from None
+                    raise self._failure(f"the {self.name} thread ended before {what}") from None
 
     def _run_thread(self) -> None:
         while True:
