@@ -26,6 +26,7 @@ The System imports no viewer: recorders (Rerun, viser) are handed in from `plvo_
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import time
 from collections import defaultdict
@@ -126,6 +127,18 @@ class System:
         self.recorder.on_run_start(info)
         self.wait_ready()
 
+    def prepare(self, frame: Frame) -> Frame:
+        """The frame with the tracker's features extracted (`Frame.features`): the prefetching thread calls it, so
+        that extraction overlaps tracking the frames before and waiting for the workers. Features depend on the
+        image and the config alone, so the trajectory is the same. Before the stages are built (no calib given to
+        the System), the frame is returned as it is and the tracker extracts them itself."""
+        frontend = self._frontend
+        if frontend is None or frame.features is not None:
+            return frame
+        t0 = time.perf_counter()
+        features = frontend.features(frame.image)
+        return dataclasses.replace(frame, features=features, features_s=time.perf_counter() - t0)
+
     def wait_ready(self) -> None:
         """Wait until the worker processes have made their cores (their imports: ~1-2 s on two cores, which the
         recorders' and viewer's start-up hides in part), so that the first frames are not timed waiting for them;
@@ -137,6 +150,11 @@ class System:
             if worker is not None:
                 worker.wait_ready()
         self.timings["workers_ready"].append(time.perf_counter() - t0)
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """The worker processes' ids (back end, loop closer; none inline or in threads)."""
+        return [w.pid for w in (self._backend, self._loop) if w is not None and w.pid is not None]
 
     def _build(self, calib: Calibration) -> None:
         from plvo.backend.worker import BackendCore
@@ -439,7 +457,7 @@ def run_system(system: System, dataset, progress=None) -> RunOutput:
     from plvo.data.prefetch import prefetched
 
     try:
-        for frame in prefetched(dataset):
+        for frame in prefetched(dataset, prepare=system.prepare):
             system.step(frame)
             if progress is not None:
                 progress(1)

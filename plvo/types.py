@@ -55,6 +55,8 @@ class Frame:
     color: (H,W,3) uint8 RGB of the same (rectified) image when the source is a colour camera, else None; only
     viewers use it, the pipeline works on `image`. scan_time: (N,) float64 seconds of each return relative to the
     scan's stamp when the source records it (ROS PointCloud2 `t`/`time` fields), else None.
+    features: the tracker's features of `image`, extracted ahead of tracking by `System.prepare` (while earlier
+    frames are tracked), with features_s the seconds it took; None: the tracker extracts them itself.
     """
 
     index: int
@@ -65,6 +67,8 @@ class Frame:
     gt_T_world_cam: np.ndarray | None = None
     color: np.ndarray | None = None
     scan_time: np.ndarray | None = None
+    features: FeatureSet | None = None
+    features_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -140,6 +140,11 @@ class OrderedWorker:
             self._ready = True
 
     @property
+    def pid(self) -> int | None:
+        """The worker process's id (None inline, in a thread, or once closed)."""
+        return self._proc.pid if self._proc is not None else None
+
+    @property
     def pending(self) -> int:
         """Jobs submitted whose output has not been taken."""
         return len(self._outstanding)

@@ -235,8 +235,9 @@ def format_table(report: dict) -> str:
     dep = report.get("deployed")
     if dep:
         kiss = "-" if dep["kiss_icp_fps"] is None else f"{dep['kiss_icp_fps']:.2f}"
+        ratio = "" if dep.get("ratio_to_kiss_icp") is None else f" (ratio, run by run: {dep['ratio_to_kiss_icp']:.2f})"
         lines.append(f"deployed (as plvo-viz: from disk, recording on): {dep['fps']:.2f} frames/s; KISS-ICP on the "
-                     f"same scans: {kiss} frames/s (workers' start-up before the first frame: "
+                     f"same scans: {kiss} frames/s{ratio} (workers' start-up before the first frame: "
                      f"{dep.get('workers_ready_s', float('nan')):.2f} s)")
     levels = report.get("recording_levels")
     if levels:

@@ -19,6 +19,7 @@ import rerun as rr
 from plvo.errors import RecordingError
 from plvo_app.recording_levels import parse_window
 from plvo_app.rrd_compact import write_chunks
+from plvo_app.rrd_reader import open_rrd
 
 NO_CARRY = ("/metrics", "/log", "/inputs")  # a value of these belongs to its frame, not to the frames after it
 
@@ -40,7 +41,7 @@ def clip(src: Path, a: int, b: int, out: Path) -> int:
     if out.exists():
         raise RecordingError(f"{out}: already exists; plvo clip never overwrites a file")
     try:
-        chunks = list(rr.chunk.RrdReader(src).stream())
+        chunks = list(open_rrd(src).stream())
     except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
         raise RecordingError(f"{src}: not a readable Rerun recording ({exc})") from None
     # the last row before `a` of each entity that carries over: (frame, chunk index, row)

@@ -188,7 +188,7 @@ def _run_frames(system, dataset, at: list[int]) -> float:
 
     t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
-        for frame in prefetched(dataset):
+        for frame in prefetched(dataset, prepare=system.prepare):
             at[0] = frame.index
             system.step(frame)
             bar.update(1)

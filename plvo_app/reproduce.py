@@ -24,7 +24,7 @@ from plvo.config import SystemConfig, config_from_dict, config_to_dict
 from plvo.errors import ConfigError, RecordingError
 from plvo.geometry.se3 import inv, rotation_angle
 from plvo.types import Frame
-from plvo_app.rrd_reader import RrdData, read_rrd
+from plvo_app.rrd_reader import RrdData, open_rrd, read_rrd
 from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, calib_from_dict, decode_inputs, file_sha256, input_files
 
 log = logging.getLogger(__name__)
@@ -105,10 +105,8 @@ class EmbeddedInputs:
     name = "embedded"
 
     def __init__(self, path: Path, identity: dict[str, Any]):
-        import rerun as rr
-
         rows: dict[int, dict[str, Any]] = {}
-        for chunk in rr.chunk.RrdReader(path).stream().filter(content=["/inputs/**"]):
+        for chunk in open_rrd(path).stream().filter(content=["/inputs/**"]):
             batch = chunk.to_record_batch()
             frames = batch.column("frame").to_pylist()
             for name in ("png", "scan", "time"):
@@ -173,10 +171,8 @@ def open_inputs(path: Path, data: RrdData, root: Path | None) -> tuple[Any, str,
 
 
 def _entities(path: Path) -> set[str]:
-    import rerun as rr
-
     try:
-        return {c.entity_path for c in rr.chunk.RrdReader(path).stream().filter(content=["/inputs/scan"])}
+        return {c.entity_path for c in open_rrd(path).stream().filter(content=["/inputs/scan"])}
     except Exception:  # noqa: BLE001
         return set()
 

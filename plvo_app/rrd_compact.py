@@ -15,6 +15,8 @@ from pathlib import Path
 
 import rerun as rr
 
+from plvo_app.rrd_reader import open_rrd
+
 log = logging.getLogger(__name__)
 
 
@@ -37,7 +39,7 @@ def compact(path: Path) -> bool:
     left as it was written. Returns whether it was compacted."""
     tmp = path.with_name(f".{path.name}.compact-{os.getpid()}")
     try:
-        reader = rr.chunk.RrdReader(path)
+        reader = open_rrd(path)
         entry = reader.recordings()[0]
         write_chunks(tmp, reader.stream(), entry.recording_id, entry.application_id)
         os.replace(tmp, path)

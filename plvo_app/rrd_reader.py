@@ -109,11 +109,19 @@ def read_chunks(path: str | Path, content: list[str] | None = None) -> list:
         return _read_cut_short(p, exc, content)
 
 
+def open_rrd(path: str | Path):
+    """Rerun's reader of a .rrd, without its warning about the footer plvo's files do not have (a user would read it
+    at the end of every run): plvo_app/rrd_sink.py writes none, and Rerun then scans the whole file."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="RRD file has no footer")
+        return rr.chunk.RrdReader(str(path))
+
+
 def _read_chunks(p: Path, content: list[str] | None = None) -> list:
     """The chunks of the recording (those of the `content` entities and the properties, when given)."""
-    with warnings.catch_warnings():  # plvo_app/rrd_sink.py writes no footer: Rerun warns, then scans the whole file
+    with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="RRD file has no footer")
-        stream = rr.chunk.RrdReader(p).stream()
+        stream = open_rrd(p).stream()
         if content is not None:
             stream = stream.filter(content=[*content, "/__properties/**"])
         return list(stream)

@@ -108,6 +108,12 @@ def test_whole_system_with_and_without_recording(synth_seq, tmp_path):
     assert dep["fps"] == pytest.approx(6 / dep["runs"][0]["wall_s"], rel=1e-2)
     if dep["kiss_icp_fps"] is not None:  # kiss-icp is in the compare extra that make test installs
         assert dep["kiss_icp_fps"] > 0 and dep["at_least_kiss_icp"] == (dep["fps"] >= dep["kiss_icp_fps"])
+        assert dep["ratio_to_kiss_icp"] == pytest.approx(dep["runs"][0]["fps"] / dep["kiss_icp_runs_fps"][0], rel=1e-2)
+    # the CPU of every process: the worker processes (back end, loop closer) did the keyframes' work
+    run = dep["runs"][0]
+    assert run["workers_cpu_ms_per_frame"] > 0
+    assert run["all_processes_cpu_ms_per_frame"] == pytest.approx(
+        run["cpu_ms_per_frame"] + run["workers_cpu_ms_per_frame"], abs=0.02)
     # bytes a frame of each recording level, from one run recorded at all three
     levels = r["recording_levels"]
     assert set(levels) == {"summary", "default", "full"}

@@ -124,8 +124,8 @@ def test_real_out_of_range_and_missing_camera(kitti_root):
 
 def test_images_and_scans_are_read_lazily(kitti_root, monkeypatch):
     calls = []
-    real_image, real_scan = kitti_module.kitti_utils.load_image, kitti_module.kitti_utils.load_velo_scan
-    monkeypatch.setattr(kitti_module.kitti_utils, "load_image", lambda *a, **k: calls.append(a) or real_image(*a, **k))
+    real_image, real_scan = kitti_module._gray8_png, kitti_module.kitti_utils.load_velo_scan
+    monkeypatch.setattr(kitti_module, "_gray8_png", lambda *a: calls.append(a) or real_image(*a))
     monkeypatch.setattr(kitti_module.kitti_utils, "load_velo_scan", lambda *a: calls.append(a) or real_scan(*a))
     ds = open_dataset(kitti_root, "04")
     assert calls == []
@@ -254,6 +254,41 @@ def test_nan_in_scan_names_frame(tmp_path):
     ds[2]
     with pytest.raises(DatasetError, match=r"000003\.bin: 2 of 100 points have NaN or infinite values \(frame 3\)"):
         ds[3]
+
+
+@pytest.mark.parametrize("kind", ["gray8", "gray16", "rgb", "palette", "gray1"])
+def test_every_png_kind_reads_as_pil_converts_it(tmp_path, kind):
+    """8-bit greyscale PNGs take OpenCV's decoder (faster); every other kind PIL's conversion, as before: the
+    grey image the pipeline gets is PIL's "L" image of the file either way."""
+    from PIL import Image
+
+    seq = make_odometry(tmp_path)
+    rng = np.random.default_rng(1)
+    path = seq / "image_0" / "000002.png"
+    if kind == "gray8":
+        Image.fromarray(rng.integers(0, 256, (H, W), np.uint8)).save(path)
+    elif kind == "gray16":
+        cv2.imwrite(str(path), rng.integers(0, 65536, (H, W), np.uint16))
+    elif kind == "rgb":
+        Image.fromarray(rng.integers(0, 256, (H, W, 3), np.uint8)).save(path)
+    elif kind == "palette":
+        Image.fromarray(rng.integers(0, 256, (H, W, 3), np.uint8)).convert("P").save(path)
+    else:
+        Image.fromarray(rng.integers(0, 2, (H, W), np.uint8) * 255).convert("1").save(path)
+    expected = np.asarray(Image.open(path).convert("L"))
+    assert (kitti_module._gray8_png(path) is not None) == (kind == "gray8")
+    got = KittiOdometry(tmp_path, "07")[2].image
+    assert got.dtype == np.uint8 and got.shape == (H, W)
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_truncated_png_names_the_file(tmp_path):
+    seq = make_odometry(tmp_path)
+    path = seq / "image_0" / "000001.png"
+    path.write_bytes(path.read_bytes()[:60])  # the header says 8-bit grey; the pixels are cut off
+    ds = KittiOdometry(tmp_path, "07")
+    with pytest.raises(DatasetError, match=r"image_0/000001\.png: unreadable image \(frame 1\)"):
+        ds[1]
 
 
 def test_image_size_contradicting_first_frame(tmp_path):

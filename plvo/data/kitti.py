@@ -16,6 +16,7 @@ import logging
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pykitti
 import pykitti.utils as kitti_utils
@@ -84,6 +85,21 @@ def _check_listing(images: dict[int, Path], image_dir: Path, scans: dict[int, Pa
         if k not in scans:
             raise DatasetError(f"{counts}{_name_of(scans, scan_dir, k, '.bin')}: missing scan (frame {k})")
     return n
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _gray8_png(path: Path) -> np.ndarray | None:
+    """An 8-bit greyscale PNG (KITTI's cameras 0 and 1, the synthetic town) decoded by OpenCV, ~1.5x faster than
+    PIL and the same pixels (no conversion either way); None for any other file, which PIL then reads as before."""
+    with open(path, "rb") as f:
+        data = f.read()
+    # IHDR: bit depth at byte 24, colour type at 25 (0: greyscale, no alpha, no palette)
+    if len(data) < 26 or not data.startswith(_PNG_SIGNATURE) or data[24] != 8 or data[25] != 0:
+        return None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    return image if image is not None and image.ndim == 2 and image.dtype == np.uint8 else None
 
 
 def _check_scan_size(path: Path, frame: int) -> None:
@@ -205,7 +221,9 @@ class _KittiSequence(SelectedFrames):
         path, frame = self._images[i], self._frames[i]
         colour = self.camera in COLOUR_CAMERAS
         try:
-            image = np.asarray(kitti_utils.load_image(str(path), mode="RGB" if colour else "L"), dtype=np.uint8)
+            image = None if colour else _gray8_png(path)
+            if image is None:
+                image = np.asarray(kitti_utils.load_image(str(path), mode="RGB" if colour else "L"), dtype=np.uint8)
         except FileNotFoundError:
             raise DatasetError(f"{path}: missing image (frame {frame})") from None
         except (OSError, UnidentifiedImageError) as exc:
@@ -221,6 +239,8 @@ class _KittiSequence(SelectedFrames):
         path, frame = self._scans[i], self._frames[i]
         _check_scan_size(path, frame)
         scan = kitti_utils.load_velo_scan(str(path))
+        if np.isfinite(scan).all():  # the common case, 40x cheaper than the per-row mask below
+            return scan
         bad = ~np.isfinite(scan).all(axis=1)
         if bad.any():
             raise DatasetError(

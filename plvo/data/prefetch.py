@@ -1,26 +1,30 @@
 """Frames read ahead of the tracker: loading and decoding the next frames in a thread while the current one is
 tracked (PNG decoding and reading a scan release the GIL), so that reading from disk is off the tracker's path.
 
-`prefetched(dataset)` yields dataset[0], dataset[1], ... in order; at most `depth` frames wait in memory (a KITTI
-frame is about 2.5 MB). A loading error is raised in the consumer, at the frame it belongs to.
+`prefetched(dataset, prepare=f)` yields f(dataset[0]), f(dataset[1]), ... in order, f run in the same thread (the
+System's feature extraction, `System.prepare`, whose OpenCV calls release the GIL too); at most `depth` frames
+wait in memory (a KITTI frame is about 2.5 MB). A loading error is raised in the consumer, at the frame it belongs
+to.
 """
 
 from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from plvo.types import Frame
 
 _END = object()
 
 
-def prefetched(dataset, depth: int = 2) -> Iterator[Frame]:
-    """The dataset's frames in order, each loaded while the previous ones are processed."""
+def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Frame] | None = None) -> Iterator[Frame]:
+    """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed."""
+    if prepare is None:
+        prepare = _as_is
     if depth <= 0:
         for i in range(len(dataset)):
-            yield dataset[i]
+            yield prepare(dataset[i])
         return
     ready: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
@@ -28,7 +32,7 @@ def prefetched(dataset, depth: int = 2) -> Iterator[Frame]:
     def load() -> None:
         try:
             for i in range(len(dataset)):
-                item = dataset[i]
+                item = prepare(dataset[i])
                 while not stop.is_set():
                     try:
                         ready.put(item, timeout=0.2)
@@ -55,3 +59,7 @@ def prefetched(dataset, depth: int = 2) -> Iterator[Frame]:
     finally:
         stop.set()
         thread.join(timeout=5)
+
+
+def _as_is(frame: Frame) -> Frame:
+    return frame

@@ -122,7 +122,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     tap.map_bytes = lambda: system.map.nbytes() if system.map is not None else 0
     t0 = time.perf_counter()
     try:
-        for frame in prefetched(dataset):
+        for frame in prefetched(dataset, prepare=system.prepare):
             system.step(frame)
             if progress is not None:
                 progress(1)

@@ -131,15 +131,23 @@ class Frontend:
         self.uses_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
 
     # ---- the per-frame entry point -----------------------------------------------------------------------
+    def features(self, image: np.ndarray) -> FeatureSet:
+        """The features `track` uses of an image (a pure function of it and the config: safe in another thread)."""
+        if self.uses_lines:
+            return self._extract(image, self.cfg.orb, self.cfg.lines)
+        # no line is used: do not spend time detecting them
+        return self._extract(image, self.cfg.orb, self.cfg.lines, points_only=True)
+
     def track(self, frame: Frame) -> FrontendResult:
         """Estimate the pose of `frame` (the next one in order) and update the map."""
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        if self.uses_lines:
-            feats = self._extract(frame.image, self.cfg.orb, self.cfg.lines)
-        else:  # no line is used: do not spend time detecting them
-            feats = self._extract(frame.image, self.cfg.orb, self.cfg.lines, points_only=True)
-        timings["features"] = time.perf_counter() - t0
+        if frame.features is not None:  # extracted ahead (System.prepare): its time was spent off this thread
+            feats = frame.features
+            timings["features"] = frame.features_s
+        else:
+            feats = self.features(frame.image)
+            timings["features"] = time.perf_counter() - t0
         if self._prev is None:
             res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
         else:

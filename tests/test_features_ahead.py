@@ -1,0 +1,85 @@
+"""Features extracted ahead of tracking (issue 15): the prefetching thread runs `System.prepare` on the next frames
+while the tracker works on the current one or waits for a worker; the trajectory must not change."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from plvo.data.prefetch import prefetched
+from plvo.types import Frame
+
+
+class _Frames:
+    def __init__(self, n: int):
+        self.n = n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int) -> Frame:
+        return Frame(i, 0.1 * i, np.full((4, 4), i, np.uint8), np.zeros((1, 4), np.float32), calib=None)
+
+
+def test_prepare_runs_in_the_prefetching_thread_in_order():
+    threads = []
+
+    def prepare(frame: Frame) -> Frame:
+        threads.append(threading.current_thread().name)
+        return Frame(frame.index, frame.time, frame.image, frame.scan, frame.calib, features_s=float(frame.index))
+
+    got = list(prefetched(_Frames(6), prepare=prepare))
+    assert [f.index for f in got] == list(range(6)) and [f.features_s for f in got] == list(range(6))
+    assert set(threads) == {"plvo-prefetch"}
+    assert [f.features_s for f in prefetched(_Frames(3), depth=0, prepare=prepare)] == [0, 1, 2]  # same, inline
+
+
+def test_an_error_in_prepare_arrives_at_its_frame():
+    def prepare(frame: Frame) -> Frame:
+        if frame.index == 3:
+            raise ValueError("frame 3: bad image")
+        return frame
+
+    seen = []
+    with pytest.raises(ValueError, match="frame 3: bad image"):
+        for frame in prefetched(_Frames(6), prepare=prepare):
+            seen.append(frame.index)
+    assert seen == [0, 1, 2]
+
+
+def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeypatch):
+    """run_system prepares frames in the prefetching thread; stepping the same frames without it must give the
+    same poses to the last bit (features are a function of the image and the config alone), and the tracker must
+    not extract any feature itself once the stages are built."""
+    from plvo.config import SystemConfig, merge
+    from plvo.data.kitti import KittiOdometry
+    from plvo.system import System, run_system
+    from plvo.tracking.frontend import Frontend
+
+    ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
+    cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
+    calls: list[str] = []
+    original = Frontend.features
+
+    def spy(self, image):
+        calls.append(threading.current_thread().name)
+        return original(self, image)
+
+    monkeypatch.setattr(Frontend, "features", spy)
+    ahead = run_system(System(cfg, calib=ds.calib), ds)
+    assert calls == ["plvo-prefetch"] * len(ds)
+    assert ahead.timings["features"] and min(ahead.timings["features"]) > 0  # the extraction's own time, reported
+
+    calls.clear()
+    system = System(cfg, calib=ds.calib)
+    try:
+        for i in range(len(ds)):
+            system.step(ds[i])
+        system.finish()
+        plain = system.poses_cam0(ds.frame_indices)
+    finally:
+        system.close()
+    assert calls == [threading.main_thread().name] * len(ds)
+    np.testing.assert_array_equal(ahead.poses, plain)
