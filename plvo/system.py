@@ -68,6 +68,7 @@ class RunOutput:
     timings: dict[str, list[float]]
     n_keyframes: int
     n_lost: int
+    finished_at: float = 0.0  # time.perf_counter() once the workers' last results were applied (before closing)
 
 
 @dataclass
@@ -462,8 +463,9 @@ def run_system(system: System, dataset, progress=None) -> RunOutput:
             if progress is not None:
                 progress(1)
         system.finish()
+        finished_at = time.perf_counter()
         poses = system.poses_cam0(dataset.frame_indices)
     finally:
         system.close()
     return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings),
-                     system.map.n_keyframes if system.map is not None else 0, system.n_lost)
+                     system.map.n_keyframes if system.map is not None else 0, system.n_lost, finished_at)
