@@ -44,7 +44,7 @@ class DetailOptions:
     max_event_windows: int = 10  # events past this many windows are still in the log, without detail...
     max_windows_per_kind: int = 3  # ...and past this many of one kind, so near-miss loops leave room for a loss
     loop_min_inliers: int = 10  # a rejected loop candidate is an event once it got this far in verification
-    slow_factor: float = 4.0  # a frame slower than this x the running median is an event...
+    slow_factor: float = 4.0  # a frame slower than this x the running mean is an event...
     slow_min_frames: int = 30  # ...once this many frames give the median
     large_correction_m: float = 2.0  # a back-end step moving a keyframe further than this is an event
 
@@ -118,8 +118,10 @@ class DetailPolicy:
 
     def timing(self, frame: int, total_s: float) -> bool:
         """The step of `frame` took `total_s`: True when that makes it a slow frame."""
+        # Against the mean, not the median: with features extracted ahead, frames between keyframes arrive in a
+        # fraction of a keyframe's time (which waits for the back end), and 4x the median flagged ordinary keyframes
         slow = (len(self._totals) >= self.opt.slow_min_frames
-                and total_s > self.opt.slow_factor * statistics.median(self._totals))
+                and total_s > self.opt.slow_factor * statistics.fmean(self._totals))
         self._totals.append(total_s)
         return slow
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections import defaultdict, deque
 from dataclasses import dataclass
 from datetime import timedelta
@@ -196,6 +197,7 @@ class RerunRecorder:
         self._times: dict[int, float] = {}
         self._scalars_buf: dict[str, tuple[list[int], list[float], list[float]]] = defaultdict(lambda: ([], [], []))
         self._frames_since_flush = 0
+        self._last_step_end: float | None = None  # perf_counter at the end of the last step (slow frames)
         self._closed = False
         self._policy = DetailPolicy(self.opt.detail)
         self._shown: dict[str, str] = {}  # detail entity -> its cadence, written since it was last cleared
@@ -619,9 +621,13 @@ class RerunRecorder:
         """The last result of a step: the keyframes and the estimate are logged here, once a step."""
         self._scalars("time", {name: 1e3 * s for name, s in t.seconds.items()})
         self._drain_warnings()
-        total = float(t.seconds.get("total", t.total))
-        if self._policy.timing(self._at, total):
-            self._text(f"frame {self._at}: slow frame ({1e3 * total:.0f} ms)", rr.TextLogLevel.WARN)
+        # A slow frame is one that took long to arrive: the time since the last step ended, not the step's own time,
+        # which leaves out what other threads did for it (its features are extracted ahead, in the prefetching one)
+        now = time.perf_counter()
+        interval = float(t.seconds.get("total", t.total)) if self._last_step_end is None else now - self._last_step_end
+        self._last_step_end = now
+        if self._policy.timing(self._at, interval):
+            self._text(f"frame {self._at}: slow frame ({1e3 * interval:.0f} ms since the last)", rr.TextLogLevel.WARN)
             self._event("slow frame")
         if self._overlay_pending and self._frame is not None:
             self._overlay_pending = False

@@ -143,3 +143,12 @@ def test_bad_level_and_window_are_one_line_errors():
         parse_window("9:3")
     assert parse_window("1200:1300") == (1200, 1300)
     assert np.all(np.array(parse_window(" 0:1 ")) == (0, 1))
+
+
+def test_a_slow_frame_is_slow_against_the_running_mean():
+    """Frames between keyframes arrive fast (features extracted ahead), keyframes wait for the back end: that
+    rhythm is not an event; a stall is."""
+    policy = DetailPolicy(DetailOptions(level="default"))
+    rhythm = [0.04, 0.04, 0.20] * 20  # 40 ms, 40 ms, then a keyframe's 200 ms: 5x the median, under 4x the mean
+    assert not any(policy.timing(f, s) for f, s in enumerate(rhythm))
+    assert policy.timing(len(rhythm), 2.0)  # a 2 s stall
