@@ -40,6 +40,7 @@ import numpy as np
 from plvo.config import SystemConfig
 from plvo.geometry import se3
 from plvo.heap import release_free_memory
+from plvo.priority import LOOKAHEAD_NICENESS
 from plvo.recording import NullRecorder, Recorder, RunInfo
 from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, MapResult, MetricsResult, TimingResult, TrackingResult
 from plvo.tracking.corrections import GLOBAL_BA, LOOP
@@ -140,6 +141,13 @@ class System:
         features = frontend.features(frame.image)
         return dataclasses.replace(frame, features=features, features_s=time.perf_counter() - t0)
 
+    def read_ahead(self, dataset) -> Iterator[Frame]:
+        """The dataset's frames as the System is meant to take them: read, and prepared (`prepare`), up to two
+        ahead in a thread at the look-ahead's priority (plvo.priority), while the frames before are tracked."""
+        from plvo.data.prefetch import prefetched
+
+        return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS)
+
     def wait_ready(self) -> None:
         """Wait until the worker processes have made their cores (their imports: ~1-2 s on two cores, which the
         recorders' and viewer's start-up hides in part), so that the first frames are not timed waiting for them;
@@ -181,7 +189,8 @@ class System:
         if self.config.loop.enabled:
             from plvo.loop.worker import LoopCore
 
-            self._loop = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode)
+            self._loop = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode,
+                                       niceness=LOOKAHEAD_NICENESS)
 
     @property
     def _lags(self) -> tuple[int, int, int]:
@@ -455,10 +464,8 @@ def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
 def run_system(system: System, dataset, progress=None) -> RunOutput:
     """Step `system` (made for this dataset, not yet stepped) through every frame, each read while the one before
     is tracked, let its workers finish, and close it -> RunOutput."""
-    from plvo.data.prefetch import prefetched
-
     try:
-        for frame in prefetched(dataset, prepare=system.prepare):
+        for frame in system.read_ahead(dataset):
             system.step(frame)
             if progress is not None:
                 progress(1)

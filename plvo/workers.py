@@ -31,6 +31,7 @@ from collections.abc import Callable
 from typing import Any
 
 from plvo.errors import WorkerError
+from plvo.priority import lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ class _Capture(logging.Handler):
         self.records.append((record.name, record.levelno, record.getMessage()))
 
 
-def _serve(jobs, outputs, factory: Callable, args: tuple, level: int) -> None:
+def _serve(jobs, outputs, factory: Callable, args: tuple, level: int, niceness: int = 0) -> None:
     """A worker process's main loop."""
     if sys.platform.startswith("linux"):  # end with the parent (a killed run leaves no worker behind)
         import ctypes
@@ -82,6 +83,7 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int) -> None:
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
         outputs.put((_Failure(None, exc), capture.records))
         return
+    lower_priority(niceness)  # after the imports, which the caller waits for; threads made later inherit it
     outputs.put((_READY, capture.records))
     capture.records = []
     while True:
@@ -109,7 +111,9 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int) -> None:
 class OrderedWorker:
     """One core, run `mode` (MODES); `submit(job)` in order, `take()` returns the outputs in the same order."""
 
-    def __init__(self, name: str, factory: Callable, args: tuple, mode: str = "inline"):
+    def __init__(self, name: str, factory: Callable, args: tuple, mode: str = "inline", niceness: int = 0):
+        """niceness: the worker process's (`lower_priority`) once its core is made; not applied inline or in a
+        thread, which run in the caller's thread or share its process."""
         if mode not in MODES:
             raise ValueError(f"worker mode must be one of {MODES}, got {mode!r}")
         self.name = name
@@ -133,7 +137,7 @@ class OrderedWorker:
             ctx = multiprocessing.get_context("spawn")
             self._jobs, self._outputs = ctx.Queue(), ctx.Queue()
             level = logging.getLogger("plvo").getEffectiveLevel()
-            self._proc = ctx.Process(target=_serve, args=(self._jobs, self._outputs, factory, args, level),
+            self._proc = ctx.Process(target=_serve, args=(self._jobs, self._outputs, factory, args, level, niceness),
                                      name=f"plvo-{name}", daemon=True)
             self._proc.start()
 

@@ -184,11 +184,10 @@ def _run_frames(system, dataset, at: list[int]) -> float:
     processed. Ctrl-C propagates."""
     from tqdm import tqdm
 
-    from plvo.data.prefetch import prefetched
 
     t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
-        for frame in prefetched(dataset, prepare=system.prepare):
+        for frame in system.read_ahead(dataset):
             at[0] = frame.index
             system.step(frame)
             bar.update(1)

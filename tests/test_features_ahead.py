@@ -3,6 +3,8 @@ while the tracker works on the current one or waits for a worker; the trajectory
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 
 import numpy as np
@@ -83,3 +85,60 @@ def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeyp
         system.close()
     assert calls == [threading.main_thread().name] * len(ds)
     np.testing.assert_array_equal(ahead.poses, plain)
+
+
+def _nice() -> int:
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread priorities are Linux's")
+def test_the_look_ahead_runs_at_a_lower_priority(synth_sequence_factory):
+    """The System's reading thread, the line thread it uses and the loop closer's process run at
+    LOOKAHEAD_NICENESS or lower; the tracker's thread keeps its priority."""
+    import psutil
+
+    from plvo.config import SystemConfig, merge
+    from plvo.data.kitti import KittiOdometry
+    from plvo.features import extract
+    from plvo.priority import LOOKAHEAD_NICENESS
+    from plvo.system import System
+
+    ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
+    system = System(merge(SystemConfig(), {"loop": {"enabled": True}}), calib=ds.calib)
+    seen = []
+    prepare = system.prepare
+
+    def spy(frame):
+        seen.append(_nice())
+        return prepare(frame)
+
+    system.prepare = spy
+    mine = _nice()
+    try:
+        system.wait_ready()
+        assert psutil.Process(system.worker_pids[1]).nice() >= LOOKAHEAD_NICENESS  # the loop closer
+        assert psutil.Process(system.worker_pids[0]).nice() == psutil.Process().nice()  # the back end: as the caller
+        for frame in system.read_ahead(ds):
+            system.step(frame)
+        system.finish()
+    finally:
+        system.close()
+    assert len(seen) == len(ds) and min(seen) >= LOOKAHEAD_NICENESS
+    assert extract._executor().submit(_nice).result() >= LOOKAHEAD_NICENESS
+    assert _nice() == mine
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread priorities are Linux's")
+def test_lower_priority_only_lowers():
+    from plvo.priority import lower_priority
+
+    def body(out):
+        lower_priority(7)
+        lower_priority(3)  # never raised back: that would need a privilege
+        out.append(_nice())
+
+    out: list[int] = []
+    t = threading.Thread(target=body, args=(out,))
+    t.start()
+    t.join()
+    assert out == [max(7, _nice())]

@@ -14,12 +14,15 @@ import threading
 from collections.abc import Callable, Iterator
 
 from plvo.types import Frame
+from plvo.priority import lower_priority
 
 _END = object()
 
 
-def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Frame] | None = None) -> Iterator[Frame]:
-    """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed."""
+def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Frame] | None = None,
+               niceness: int = 0) -> Iterator[Frame]:
+    """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed; the
+    reading thread runs at `niceness` (plvo.workers.lower_priority)."""
     if prepare is None:
         prepare = _as_is
     if depth <= 0:
@@ -30,6 +33,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Frame] | None
     stop = threading.Event()
 
     def load() -> None:
+        lower_priority(niceness)
         try:
             for i in range(len(dataset)):
                 item = prepare(dataset[i])

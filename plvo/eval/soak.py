@@ -113,7 +113,6 @@ class SoakTap:
 def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, rrd: Path | None = None,
              window: int = 100, progress=None) -> dict:
     """Run the System over the dataset as plvo-viz does, through a SoakTap -> the soak report (schema SCHEMA)."""
-    from plvo.data.prefetch import prefetched
     from plvo.system import System
 
     tap = SoakTap(recorder, rrd, window)
@@ -122,7 +121,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     tap.map_bytes = lambda: system.map.nbytes() if system.map is not None else 0
     t0 = time.perf_counter()
     try:
-        for frame in prefetched(dataset, prepare=system.prepare):
+        for frame in system.read_ahead(dataset):
             system.step(frame)
             if progress is not None:
                 progress(1)

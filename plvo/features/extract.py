@@ -20,6 +20,7 @@ from plvo.features.lbd import compute_lbd
 from plvo.features.lines import LineSegments, detect_lines
 from plvo.features.points import detect_orb
 from plvo.types import FeatureSet
+from plvo.priority import LOOKAHEAD_NICENESS, lower_priority
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +30,9 @@ _pool: ThreadPoolExecutor | None = None
 def _executor() -> ThreadPoolExecutor:
     global _pool
     if _pool is None:
-        _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plvo-lines")
+        # at the look-ahead's priority: in the System its work is for frames read ahead (System.prepare)
+        _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="plvo-lines", initializer=lower_priority,
+                                   initargs=(LOOKAHEAD_NICENESS,))
         atexit.register(_pool.shutdown, wait=False)
     return _pool
 
