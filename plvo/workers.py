@@ -137,8 +137,8 @@ class OrderedWorker:
             ctx = multiprocessing.get_context("spawn")
             self._jobs, self._outputs = ctx.Queue(), ctx.Queue()
             level = logging.getLogger("plvo").getEffectiveLevel()
-            self._proc = ctx.Process(target=_serve, args=(self._jobs, self._outputs, factory, args, level, niceness),
-                                     name=f"plvo-{name}", daemon=True)
+            self._proc = ctx.Process(target=_serve, name=f"plvo-{name}", daemon=True,
+                                     args=(self._jobs, self._outputs, factory, args, level, niceness))
             self._proc.start()
 
     def wait_ready(self) -> None:

@@ -184,7 +184,6 @@ def _run_frames(system, dataset, at: list[int]) -> float:
     processed. Ctrl-C propagates."""
     from tqdm import tqdm
 
-
     t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
         for frame in system.read_ahead(dataset):

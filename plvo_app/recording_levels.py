@@ -45,7 +45,7 @@ class DetailOptions:
     max_windows_per_kind: int = 3  # ...and past this many of one kind, so near-miss loops leave room for a loss
     loop_min_inliers: int = 10  # a rejected loop candidate is an event once it got this far in verification
     slow_factor: float = 4.0  # a frame slower than this x the running mean is an event...
-    slow_min_frames: int = 30  # ...once this many frames give the median
+    slow_min_frames: int = 30  # ...once this many frames give the mean
     large_correction_m: float = 2.0  # a back-end step moving a keyframe further than this is an event
 
     def __post_init__(self) -> None:
@@ -117,7 +117,7 @@ class DetailPolicy:
         return self._open_window(frame - self.opt.before, frame + self.opt.after + 1)
 
     def timing(self, frame: int, total_s: float) -> bool:
-        """The step of `frame` took `total_s`: True when that makes it a slow frame."""
+        """`frame` took `total_s` to arrive (since the last step's end): True when that makes it a slow frame."""
         # Against the mean, not the median: with features extracted ahead, frames between keyframes arrive in a
         # fraction of a keyframe's time (which waits for the back end), and 4x the median flagged ordinary keyframes
         slow = (len(self._totals) >= self.opt.slow_min_frames

@@ -13,8 +13,8 @@ import queue
 import threading
 from collections.abc import Callable, Iterator
 
-from plvo.types import Frame
 from plvo.priority import lower_priority
+from plvo.types import Frame
 
 _END = object()
 
@@ -22,7 +22,7 @@ _END = object()
 def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Frame] | None = None,
                niceness: int = 0) -> Iterator[Frame]:
     """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed; the
-    reading thread runs at `niceness` (plvo.workers.lower_priority)."""
+    reading thread runs at `niceness` (plvo.priority.lower_priority)."""
     if prepare is None:
         prepare = _as_is
     if depth <= 0:

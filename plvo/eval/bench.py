@@ -334,7 +334,7 @@ def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None
     t0 = time.perf_counter()
     with RssSampler() as rss:
         out = run_system(system, frames)  # closes the System: its worker processes are joined
-    # to the workers' last result, as plvo-viz's frames a second: the workers' exit (~0.2 s) is not a user's wait
+    # to the workers' last result, as plvo-viz's frames a second: closing (the workers' exit) is not part of it
     wall = out.finished_at - t0
     cpu = _cpu_s(resource.RUSAGE_SELF) - cpu0
     workers = _cpu_s(resource.RUSAGE_CHILDREN) - children0 - startup if startup is not None else None

@@ -19,8 +19,8 @@ from plvo.errors import PlvoError
 from plvo.features.lbd import compute_lbd
 from plvo.features.lines import LineSegments, detect_lines
 from plvo.features.points import detect_orb
-from plvo.types import FeatureSet
 from plvo.priority import LOOKAHEAD_NICENESS, lower_priority
+from plvo.types import FeatureSet
 
 log = logging.getLogger(__name__)
 
