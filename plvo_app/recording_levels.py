@@ -79,7 +79,7 @@ class DetailPolicy:
         self._held: dict[int, list[Any]] = {}
         self._order: deque[int] = deque()
         self._n_keyframes = 0
-        self._totals: deque[float] = deque(maxlen=200)
+        self._intervals: deque[float] = deque(maxlen=200)  # seconds between step ends (timing)
         self.n_event_windows = 0
         self._per_kind: dict[str, int] = {}
         self.events: list[tuple[int, str]] = []  # (frame, why) of every event, whether it got detail or not
@@ -116,13 +116,13 @@ class DetailPolicy:
         self._per_kind[why] = self._per_kind.get(why, 0) + 1
         return self._open_window(frame - self.opt.before, frame + self.opt.after + 1)
 
-    def timing(self, frame: int, total_s: float) -> bool:
-        """`frame` took `total_s` to arrive (since the last step's end): True when that makes it a slow frame."""
+    def timing(self, frame: int, seconds: float) -> bool:
+        """`frame` took `seconds` to arrive (since the last step's end): True when that makes it a slow frame."""
         # Against the mean, not the median: with features extracted ahead, frames between keyframes arrive in a
         # fraction of a keyframe's time (which waits for the back end), and 4x the median flagged ordinary keyframes
-        slow = (len(self._totals) >= self.opt.slow_min_frames
-                and total_s > self.opt.slow_factor * statistics.fmean(self._totals))
-        self._totals.append(total_s)
+        slow = (len(self._intervals) >= self.opt.slow_min_frames
+                and seconds > self.opt.slow_factor * statistics.fmean(self._intervals))
+        self._intervals.append(seconds)
         return slow
 
     def take(self, frames: list[int]) -> list[tuple[int, Any]]:
