@@ -114,3 +114,33 @@ def test_single_view_landmarks_move_rigidly_with_their_keyframe(noisy):
     move = res.T_world_cam[k] @ se3.inv(q.T_world_cam[k])
     np.testing.assert_allclose(res.points[-1], se3.transform_points(move, extra_pt)[0], atol=1e-9)
     assert np.linalg.norm(move[:3, 3]) > 0.01  # the keyframe did move (the noise on it is removed)
+
+
+def test_damping_goes_to_the_problems_scale_after_a_rejected_step(noisy, monkeypatch):
+    """LM starts nearly Gauss-Newton; after a rejected step its damping is at least 1e-2 of the normal equations'
+    median diagonal. (Climbing x100 from 1e-5, against a diagonal of ~1e5 at the landmarks and ~1e10 at the poses,
+    took three or four more rejected steps in every adjustment of a KITTI window.)"""
+    import plvo.backend.bundle_adjustment as ba
+
+    truth, p = noisy
+    trials: list[tuple[float, float]] = []
+    solve = ba._Normal.solve
+
+    def spy(self, lam):
+        trials.append((lam, self.median_diagonal()))
+        return solve(self, lam)
+
+    monkeypatch.setattr(ba._Normal, "solve", spy)
+    res = optimize(p)
+    t, r = _pose_err(res.T_world_cam, truth.T_world_cam)
+    assert t < 0.02 and r < 0.05, (t, r)
+    assert trials[0][0] == ba._LAM0 and trials[0][1] > 1e3
+    raised, floor = [], None
+    for (prev, _), (lam, diag) in zip([(np.inf, 0.0)] + trials, trials):
+        if lam == ba._LAM0 and lam < prev:  # an LM round starts (the second round follows the outlier test)
+            floor = 1e-2 * diag
+        elif lam > prev:
+            raised.append((lam, floor))
+    assert raised, "no step was rejected: the floor is not exercised"
+    assert all(lam >= floor for lam, floor in raised), raised
+    assert len(trials) <= 2 * res.iterations + 2, (len(trials), res.iterations)

@@ -171,3 +171,29 @@ def test_relpose_batch_helpers_match_scalar_se3_and_weights_scale_rows():
     np.testing.assert_allclose(r2, r1 * np.sqrt(w), rtol=1e-12)
     np.testing.assert_allclose(Ji2, Ji1 * np.sqrt(w)[:, None], rtol=1e-12)
     np.testing.assert_allclose(Jj2, Jj1 * np.sqrt(w)[:, None], rtol=1e-12)
+
+
+def test_trial_steps_cost_without_jacobians_equals_the_full_evaluation():
+    """The LM prices its trial steps without Jacobians: the residuals (every block, with priors on half the
+    observations and relative-pose factors) and the cost must be the full evaluation's to the last bit."""
+    truth = make_synthetic_problem(n_kf=5, n_points=80, n_lines=20, seed=7, prior_fraction=0.5, pixel_noise=0.5)
+    rng = np.random.default_rng(7)
+    T = truth.T_world_cam.copy()
+    for k in range(1, 5):
+        T[k] = T[k] @ se3.exp(rng.normal(0, 0.02, 6))
+    p = dataclasses.replace(truth, T_world_cam=T, points=truth.points + rng.normal(0, 0.1, truth.points.shape),
+                            rel_zeta=np.full(4, 0.6))
+    cfg = BackendConfig()
+    pt_ok, ln_ok = factors.usable_landmarks(p)
+    lay, sel = ba._Layout(p, pt_ok, ln_ok), ba._select(p, pt_ok, ln_ok, True)
+    sel["origin"] = np.zeros((p.n_lines, 3))
+    U, W = plucker_to_orth(plucker_from_points(p.lines[:, 0], p.lines[:, 1]))
+    T_cw = np.stack([se3.inv(t) for t in p.T_world_cam])
+    args = (p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M)
+    full, cheap = ba._evaluate(*args), ba._evaluate(*args, jacobians=False)
+    assert [len(r) for r, _, _ in full.items] == [len(r) for r, _, _ in cheap.items] and len(full.items) == 3
+    assert np.isfinite(p.ln_prior).any() and ln_ok.sum() >= 5
+    for (r_full, terms, k_full), (r_cheap, none, k_cheap) in zip(full.items, cheap.items):
+        np.testing.assert_array_equal(r_cheap, r_full)
+        assert k_cheap == k_full and all(J is None for _, J in none) and all(J is not None for _, J in terms)
+    assert cheap.cost() == full.cost() > 1.0

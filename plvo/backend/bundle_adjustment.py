@@ -41,12 +41,13 @@ log = logging.getLogger(__name__)
 
 def point_block(
     K: np.ndarray, T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray, depth: np.ndarray, baseline: float,
-    sigma: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    sigma: float, jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(3,3), (N,4,4), (N,3) world, (N,2) px, (N,) z or NaN -> r (N,3), J_pose (N,3,6), J_point (N,3,3), whitened.
 
     Row 3 is the virtual right-image column u_R (ORB-SLAM2's stereo form, as gtsam's GenericStereoFactor3D)
     where a depth prior exists and zero (with zero Jacobian) otherwise, so mono and stereo share one array.
+    jacobians=False: (r, None, None), r computed by the same operations (the LM's trial steps need the cost only).
     """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R, t = T_cw[:, :3, :3], T_cw[:, :3, 3]
@@ -56,6 +57,9 @@ def point_block(
     stereo = np.isfinite(depth) & (depth > 0)
     u_r_meas = uv[:, 0] - fx * baseline / np.where(stereo, depth, 1.0)
     r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1], fx * (x - baseline) * zi + cx - u_r_meas], 1)
+    if not jacobians:
+        r[~stereo, 2] = 0.0
+        return r / sigma, None, None
     dproj = np.zeros((len(z), 3, 3))  # d(uL, v, uR)/d Xc
     dproj[:, 0, 0], dproj[:, 0, 2] = fx * zi, -fx * x * zi**2
     dproj[:, 1, 1], dproj[:, 1, 2] = fy * zi, -fy * y * zi**2
@@ -67,15 +71,23 @@ def point_block(
 
 
 def line_block(
-    K: np.ndarray, T_cw: np.ndarray, U: np.ndarray, W: np.ndarray, seg: np.ndarray, priors: np.ndarray, sigma: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    K: np.ndarray, T_cw: np.ndarray, U: np.ndarray, W: np.ndarray, seg: np.ndarray, priors: np.ndarray, sigma: float,
+    jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(3,3), (N,4,4), (N,3,3),(N,2,2) world lines, (N,4) px, (N,2,3) priors in camera or NaN -> r (N,3),
-    J_pose (N,3,6), J_line (N,3,4), whitened; row 3 (mean prior distance) is zero where there is no prior."""
-    r2, Jp2, Jl2 = line_residuals_and_jacobians_batch(K, T_cw, U, W, seg)
+    J_pose (N,3,6), J_line (N,3,4), whitened; row 3 (mean prior distance) is zero where there is no prior.
+    jacobians=False: (r, None, None)."""
+    r2, Jp2, Jl2 = line_residuals_and_jacobians_batch(K, T_cw, U, W, seg, jacobians)
     n = len(seg)
+    has = np.all(np.isfinite(priors.reshape(n, 6)), axis=1)
+    if not jacobians:
+        r = np.zeros((n, 3))
+        r[:, :2] = r2
+        if np.any(has):
+            r[has, 2] = factors.prior_distance_and_jacobians(T_cw[has], U[has], W[has], priors[has], False)[0]
+        return r / sigma, None, None
     r, Jp, Jl = np.zeros((n, 3)), np.zeros((n, 3, 6)), np.zeros((n, 3, 4))
     r[:, :2], Jp[:, :2], Jl[:, :2] = r2, Jp2, Jl2
-    has = np.all(np.isfinite(priors.reshape(n, 6)), axis=1)
     if np.any(has):
         d, jp, jl = factors.prior_distance_and_jacobians(T_cw[has], U[has], W[has], priors[has])
         r[has, 2], Jp[has, 2], Jl[has, 2] = d, jp, jl
@@ -177,6 +189,15 @@ class _Normal:
             idx = rank[:, None, None] * 16 + ii * 4 + jj
             self.Hln += np.bincount(idx.ravel(), B.ravel(), minlength=len(self.Hln))
 
+    def median_diagonal(self) -> float:
+        """The median of the diagonal of J^T W J over all variables (1.0 when it has none or it is zero)."""
+        n_p = self.n_p
+        d = np.concatenate([self.Hpp[:: n_p + 1] if n_p else np.zeros(0),
+                            self.Hpt.reshape(-1, 3, 3)[:, np.arange(3), np.arange(3)].ravel(),
+                            self.Hln.reshape(-1, 4, 4)[:, np.arange(4), np.arange(4)].ravel()])
+        m = float(np.median(d)) if len(d) else 0.0
+        return m if np.isfinite(m) and m > 0 else 1.0
+
     def solve(self, lam: float) -> np.ndarray:
         """-> delta minimising the damped model (H + lam I) delta = -g (gtsam's default damping).
 
@@ -218,11 +239,13 @@ class _Normal:
         return np.concatenate([d_p, d_l])
 
 
-def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
+def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline, jacobians: bool = True) -> _Blocks:
+    """Whitened residual blocks at a state; jacobians=False gives the same residuals (and cost) without the
+    Jacobians (their terms are None), for trial steps that may be rejected."""
     b = _Blocks()
     o = sel["pt"]
     r, Jp, Jx = point_block(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
-                            sel["depth"], baseline, cfg.sigma_point_px)
+                            sel["depth"], baseline, cfg.sigma_point_px, jacobians)
     b.add(r, [(lay.pose[problem.pt_kf[o]], Jp), (lay.point[problem.pt_idx[o]], Jx)], cfg.huber_point / cfg.sigma_point_px)
     o = sel["ln"]
     if len(o):
@@ -230,12 +253,13 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
         T_cl = T_cw[problem.ln_kf[o]].copy()  # camera <- the line's local frame (world shifted to its origin)
         T_cl[:, :3, 3] += np.einsum("nij,nj->ni", T_cl[:, :3, :3], sel["origin"][j])
         r, Jp, Jl = line_block(problem.K, T_cl, U[j], W[j], problem.ln_seg[o], sel["prior"],
-                               cfg.sigma_line)
+                               cfg.sigma_line, jacobians)
         b.add(r, [(lay.pose[problem.ln_kf[o]], Jp), (lay.line[j], Jl)], cfg.huber_line / cfg.sigma_line)
     o = sel["rel"]
     if len(o):
         i, j = problem.rel_ij[o, 0], problem.rel_ij[o, 1]
-        r, Ji, Jj = relpose_block(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o], problem.rel_weight)
+        r, Ji, Jj = relpose_block(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o], problem.rel_weight,
+                                  jacobians)
         b.add(r, [(lay.pose[i], Ji), (lay.pose[j], Jj)], None)
     return b
 
@@ -285,7 +309,14 @@ def _weak_landmarks(normal: "_Normal") -> tuple[np.ndarray, np.ndarray]:
 
 
 _LINE_ORIGIN_OFFSET_M = 10.0
-_LAM0, _LAM_UP, _LAM_DOWN = 1e-5, 100.0, 10.0  # LM damping: start, factor after a rejected step, after an accepted one
+# LM damping: the start (gtsam's default: nearly Gauss-Newton), the factor after a rejected step, after an accepted
+# one, and the least damping after a rejected step, relative to the median diagonal of the normal equations.
+# Gauss-Newton first: a scale correction's first step must walk the weak monocular scale direction, which any
+# damping at the problem's scale holds back (every landmark moves along it). When that step is rejected, the LM of
+# a seq-04 window climbed x100 at a time through three or four more rejected steps to ~1e3 (the diagonal: ~1e5 at
+# the landmarks, which are most variables, ~1e10 at the poses); the floor of 1e-2 of the median diagonal goes there
+# at once.
+_LAM0, _LAM_UP, _LAM_DOWN, _LAM_FLOOR_REL = 1e-5, 100.0, 10.0, 1e-2
 
 
 def _line_origins(ends: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -363,6 +394,7 @@ def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs
         ln_ok[np.flatnonzero(ln_ok)[weak_ln]] = False
     initial_cost = cost = blocks.cost()
     lam, it = _LAM0, 0
+    lam_floor = _LAM_FLOOR_REL * normal.median_diagonal()
     while it < cfg.iterations and lay.size > 0:
         it += 1
         improved = False
@@ -373,19 +405,19 @@ def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs
             if predicted < 1e-7 * cost:
                 break
             cand = _apply(delta, lay, *state)
-            cand_blocks = _evaluate(problem, *cand, lay, sel, cfg, baseline)
-            cand_cost = cand_blocks.cost()
+            # the cost alone: over half the trial steps are rejected, and their Jacobians would be thrown away
+            cand_cost = _evaluate(problem, *cand, lay, sel, cfg, baseline, jacobians=False).cost()
             if np.isfinite(cand_cost) and cand_cost < cost:
                 improved = True
                 break
-            lam *= _LAM_UP  # the Hessian's diagonal reaches 1e6-1e8 (px / m): small increments change nothing
+            lam = max(lam * _LAM_UP, lam_floor)
         if not improved:
             break
         rel_drop = (cost - cand_cost) / max(cost, 1e-300)
-        state, blocks, cost, lam = cand, cand_blocks, cand_cost, max(lam / _LAM_DOWN, 1e-12)
-        if rel_drop < 1e-6 or cost < 1e-12 or np.max(np.abs(delta)) < 1e-10:
+        state, cost, lam = cand, cand_cost, max(lam / _LAM_DOWN, 1e-12)
+        if rel_drop < 1e-6 or cost < 1e-12 or np.max(np.abs(delta)) < 1e-10 or it >= cfg.iterations:
             break
-        normal = blocks.normal_equations(lay)
+        normal = _evaluate(problem, *state, lay, sel, cfg, baseline).normal_equations(lay)
     return state, initial_cost, cost, it, pt_ok, ln_ok
 
 
@@ -401,7 +433,7 @@ def _outliers(problem, state, origin, pt_ok, ln_ok, cfg, use_depth_priors, basel
     for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
                                    (bad_ln, only_lines, sel["ln"], cfg.sigma_line)):
         if len(rows):
-            r = _evaluate(problem, *state, lay, part, cfg, baseline).items[0][0]
+            r = _evaluate(problem, *state, lay, part, cfg, baseline, jacobians=False).items[0][0]
             bad[rows] = sigma * np.linalg.norm(r, axis=1) > cfg.outlier_px
     return bad_pt, bad_ln
 

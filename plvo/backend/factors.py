@@ -61,17 +61,23 @@ def line_chart_jacobian(phi: np.ndarray) -> np.ndarray:
 
 
 def prior_distance_and_jacobians(
-    T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, priors_cam: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, priors_cam: np.ndarray, jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(N,4,4), (N,3,3), (N,2,2), (N,2,3) camera-frame endpoint priors -> mean distance (N,) m, J_pose (N,6), J_line (N,4).
 
     J_pose is w.r.t. the left perturbation xi=(rho,phi) of T_cam_world, J_line w.r.t. the orth_update delta.
+    jacobians=False: (distance, None, None), the distance computed by the same operations.
     """
     R, t = T_cam_world[:, :3, :3], T_cam_world[:, :3, 3]
     Lw = orth_to_plucker(U, W)
     d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
     m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + cross3(t, d_c)
     nd = np.linalg.norm(d_c, axis=1)
+    if not jacobians:
+        dist = np.zeros(len(R))
+        for k in range(2):
+            dist += 0.5 * (np.linalg.norm(cross3(priors_cam[:, k], d_c) - m_c, axis=1) / nd)
+        return dist, None, None
     dL = orth_plucker_jacobian(U, W)
     dmc_dl = R @ dL[:, :3] + hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
     ddc_dl = R @ dL[:, 3:]

@@ -54,19 +54,23 @@ def _ad(xi: np.ndarray) -> np.ndarray:
 
 
 def relpose_block(
-    T_cw_i: np.ndarray, T_cw_j: np.ndarray, T_ij_meas: np.ndarray, zeta: np.ndarray, weight: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    T_cw_i: np.ndarray, T_cw_j: np.ndarray, T_ij_meas: np.ndarray, zeta: np.ndarray, weight: np.ndarray | None = None,
+    jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(N,4,4) x2, (N,4,4) measured T_cam_i_cam_j, (N,) zeta, (6,) weight -> r (N,6), J_i, J_j (N,6,6), whitened.
 
     r = Log(T_ij_meas^-1 T_i_j), T_i_j = T_cam_i_world T_world_cam_j (the paper's xi_ij up to the side of the
     inverse; same minimiser, gtsam's BetweenFactor convention), whitened by sqrt(zeta * weight): the information
     is zeta diag(weight) (weight in (rho, phi) order, default ones: the paper's zeta I).
     With T_cw <- exp(xi) T_cw: dr/dxi_i = Jr^-1(r) Ad(T_i_j^-1), dr/dxi_j = -Jr^-1(r), Jr^-1(r) ~ I + ad(r)/2.
+    jacobians=False: (r, None, None).
     """
     T_ij = T_cw_i @ se3.inv_batch(T_cw_j)
     r = log_batch(se3.inv_batch(T_ij_meas) @ T_ij)
-    Ji = adjoint_batch(se3.inv_batch(T_ij))
-    Jr_inv = np.eye(6) + 0.5 * _ad(r)
     w = np.ones(6) if weight is None else np.asarray(weight, dtype=float)
     s = np.sqrt(np.asarray(zeta, dtype=float)[:, None] * w[None, :])  # (N,6) per-row whitening
+    if not jacobians:
+        return r * s, None, None
+    Ji = adjoint_batch(se3.inv_batch(T_ij))
+    Jr_inv = np.eye(6) + 0.5 * _ad(r)
     return r * s, (Jr_inv @ Ji) * s[:, :, None], -Jr_inv * s[:, :, None]

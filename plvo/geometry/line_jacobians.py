@@ -31,12 +31,14 @@ def orth_plucker_jacobian(U: np.ndarray, W: np.ndarray) -> np.ndarray:
 
 
 def line_residuals_and_jacobians_batch(
-    K: np.ndarray, T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, segments: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    K: np.ndarray, T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, segments: np.ndarray,
+    jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(3,3), (N,4,4) or (4,4), (N,3,3) world, (N,2,2), (N,4) px -> r (N,2) px, J_pose (N,2,6), J_line (N,2,4).
 
     r is the paper's gamma (signed distances of the segment ends to the projected line); J_pose is w.r.t. xi in
-    T_cam_world <- exp(xi) T_cam_world, J_line w.r.t. the orth_update delta of the world line.
+    T_cam_world <- exp(xi) T_cam_world, J_line w.r.t. the orth_update delta of the world line. With
+    jacobians=False the Jacobians are None and r is the same array, computed by the same operations.
     """
     U = np.asarray(U, dtype=float)
     W = np.asarray(W, dtype=float)
@@ -60,6 +62,8 @@ def line_residuals_and_jacobians_batch(
     x = np.concatenate([ends, np.ones((n_obs, 2, 1))], axis=2)  # homogeneous endpoints (N,2,3)
     norm = np.hypot(l[:, 0], l[:, 1])
     r = np.einsum("nki,ni->nk", x, l) / norm[:, None]
+    if not jacobians:
+        return r, None, None
     grad_n = np.zeros_like(l)
     grad_n[:, :2] = l[:, :2] / norm[:, None]  # d|l_12|/dl
     dr_dl = (x - r[:, :, None] * grad_n[:, None, :]) / norm[:, None, None]
