@@ -179,8 +179,11 @@ class BackendConfig:
     # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker) or "thread".
     executor: str = "process"
     # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
-    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was.
-    max_lag_frames: int = 3
+    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Issue 15:
+    # 3 -> 6. With 3, on 04 (a keyframe every third frame) the result was due at the start of the next keyframe's
+    # frame, so that frame's tracking and depth priors (~45 ms) waited for the back end and then delayed the next
+    # job: the two were in series. With 6 it is applied when that keyframe is made, after its tracking.
+    max_lag_frames: int = 6
 
 
 @dataclass(frozen=True)

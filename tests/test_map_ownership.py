@@ -182,3 +182,46 @@ def test_a_global_ba_read_before_a_later_loop_correction_is_skipped():
                   MapCorrection(LOOP, np.arange(4), m.poses(), m.poses())]
     out = core.process(GlobalBAJob(30, m.global_data(), 1.0, corrections_applied=1))
     assert out.correction is None and out.rejected.startswith("superseded")
+
+
+@pytest.mark.parametrize("lag", [3, 6])
+def test_the_back_end_lag_decides_where_the_tracker_waits(synth_sequence_factory, monkeypatch, lag):
+    """A keyframe's back-end result is applied at its frame + backend.max_lag_frames or when the next keyframe is
+    made, whichever is first. With the next keyframe within the lag (6, the default), the result is applied after
+    that keyframe's frame was tracked, so the frame's tracking and depth priors run while the back end works; with
+    a lag equal to the keyframe spacing (3) the tracker waited for the result before tracking that frame."""
+    from plvo.config import SystemConfig, merge
+    from plvo.data.kitti import KittiOdometry
+    from plvo.system import System
+    from plvo.tracking.frontend import Frontend
+
+    events: list[tuple[str, int]] = []
+    track, apply_backend = Frontend.track, System._apply_backend
+
+    def spy_track(self, frame, *args, **kwargs):
+        out = track(self, frame, *args, **kwargs)
+        events.append(("tracked", frame.index))
+        return out
+
+    def spy_apply(self, out):
+        events.append(("applied", out.frame_index))
+        return apply_backend(self, out)
+
+    monkeypatch.setattr(Frontend, "track", spy_track)
+    monkeypatch.setattr(System, "_apply_backend", spy_apply)
+    ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
+    system = System(merge(SystemConfig(), {"backend": {"executor": "thread", "max_lag_frames": lag},
+                                           "loop": {"enabled": False}}))
+    try:
+        for i in range(len(ds)):
+            system.step(ds[i])
+        keyframes = [system.map.keyframe_frame(k) for k in range(system.map.n_keyframes)]
+        system.finish()
+    finally:
+        system.close()
+    order = {e: n for n, e in enumerate(events)}
+    pairs = [(a, b) for a, b in zip(keyframes, keyframes[1:]) if ("applied", a) in order]
+    assert any(3 <= b - a < 6 for a, b in pairs), keyframes  # spacings where the two lags differ
+    for a, b in pairs:
+        after_tracking = order[("applied", a)] > order[("tracked", b)]
+        assert after_tracking == (b - a < lag), (lag, a, b, keyframes)
