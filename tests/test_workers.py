@@ -150,3 +150,34 @@ def test_a_worker_that_never_says_ready_is_refused():
             w.take()
     finally:
         w.close()
+
+
+class Open3dThreads:
+    """A core that uses open3d, as the back end and the loop closer do: reports how many threads open3d may use."""
+
+    def __init__(self) -> None:
+        import open3d  # noqa: F401 - imported by the core, as BackendCore's registration does
+
+    def process(self, job: Job) -> int:
+        import open3d
+
+        return int(open3d.utility.get_max_threads())
+
+
+def test_open3d_runs_single_threaded_in_a_worker_process_only():
+    """A worker process shares two cores with the tracker and the other worker: open3d's second TBB thread added
+    CPU there, not speed. The limit is the worker process's alone: the caller's open3d keeps its threads."""
+    import os
+
+    import open3d
+
+    mine = open3d.utility.get_max_threads()
+    w = OrderedWorker("registration", Open3dThreads, (), "process")
+    try:
+        w.submit(Job(0, 0))
+        assert w.take() == 1
+    finally:
+        w.close()
+    assert open3d.utility.get_max_threads() == mine
+    if (os.cpu_count() or 1) > 1:
+        assert mine > 1  # the limit is not the machine's default (this test could not fail on one core)
