@@ -1,10 +1,12 @@
 """Thread priorities: work whose result is needed later yields the cores to work the tracker waits for.
 
-In the deployed mode the tracker waits at every keyframe for the back end's result of the keyframe before (plvo.system):
-the back end is the run's critical path. Frames read and their features extracted ahead (plvo.data.prefetch,
-`System.prepare`, with the line thread they use) and the loop closer (whose results are applied 20 frames later) run
-at LOOKAHEAD_NICENESS, so that on two cores they take what the back end and the tracker leave. Measured on KITTI 04
-(6 runs each way, alternating, KISS-ICP after each): 0.75 -> 0.82 of KISS-ICP's frames a second (medians).
+In the deployed mode the tracker waits, when it makes a keyframe, for the back end's result of the keyframe before
+(plvo.system): the back end is on the run's critical path. Frames read and their features extracted ahead
+(plvo.data.prefetch, `System.prepare`, with the line thread they use) and the loop closer (whose results are applied
+20 frames later) run at LOOKAHEAD_NICENESS, so that on two cores they take what the back end and the tracker leave.
+Measured on KITTI 04 (6 runs each way, alternating, KISS-ICP after each): 0.75 -> 0.82 of KISS-ICP's frames a second
+(medians). Since the back-end lag became 6 frames (issue 15, tenth session) the tracker rarely waits; the look-ahead
+at nice 0 was no faster (plvo-viz on 04, 5 alternating runs each: 10.3 against 10.8 frames a second at nice 10).
 """
 
 from __future__ import annotations

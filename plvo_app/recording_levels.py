@@ -144,13 +144,13 @@ class DetailPolicy:
 
 
 class Lazy:
-    """Detail held back that is costly to make (the JPEG): made only if an event wants its frame."""
+    """Detail held back that is costly to make (the JPEG, Rerun's archetypes): made only if its frame is written."""
 
-    def __init__(self, fn, *args):
-        self.fn, self.args = fn, args
+    def __init__(self, fn, *args, **kwargs):
+        self.fn, self.args, self.kwargs = fn, args, kwargs
 
     def __call__(self):
-        return self.fn(*self.args)
+        return self.fn(*self.args, **self.kwargs)
 
 
 class WarningCapture(logging.Handler):

@@ -161,6 +161,19 @@ def _segments_2d(seg: np.ndarray) -> np.ndarray:
     return np.asarray(seg, dtype=np.float32).reshape(-1, 2, 2)
 
 
+def _points2d(xy: np.ndarray, colors: list | None, radius_ui: float, inliers: np.ndarray | None = None) -> rr.Points2D:
+    """Pixels as Points2D: one colour, or green/red by `inliers`."""
+    return rr.Points2D(np.asarray(xy, np.float32), colors=colors if inliers is None else inlier_colors(inliers),
+                       radii=rr.Radius.ui_points(radius_ui))
+
+
+def _strips2d(seg: np.ndarray, colors: list | None, radius_ui: float, inliers: np.ndarray | None = None
+              ) -> rr.LineStrips2D:
+    """(N,4) segments as LineStrips2D: one colour, or green/red by `inliers`."""
+    return rr.LineStrips2D(_segments_2d(seg), colors=colors if inliers is None else inlier_colors(inliers),
+                           radii=rr.Radius.ui_points(radius_ui))
+
+
 def _transform(T: np.ndarray) -> rr.Transform3D:
     return rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3])
 
@@ -346,16 +359,19 @@ class RerunRecorder:
 
     # ---- detail: written now, held back for an event, or cleared -----------------------------------------
     def _log(self, path: str, archetype: Any) -> None:
-        """Write `archetype` to `path` at the current frame, if the recording level wants it there."""
+        """Write `archetype` (or what a Lazy makes) to `path` at the current frame, if the recording level wants it
+        there; else hold it back, a Lazy unmade."""
         if archetype is None:
             return
-        if ENTITIES[path].level != "detail":
-            self.rec.log(path, archetype)
-        elif self._policy.want(self._at):
-            self.rec.log(path, archetype)
-            self._shown[path] = ENTITIES[path].when
-        else:
+        if ENTITIES[path].level == "detail" and not self._policy.want(self._at):
             self._policy.defer(self._at, (path, archetype))
+            return
+        archetype = archetype() if isinstance(archetype, _Lazy) else archetype
+        if archetype is None:
+            return
+        self.rec.log(path, archetype)
+        if ENTITIES[path].level == "detail":
+            self._shown[path] = ENTITIES[path].when
 
     def _write_held(self, frames: list[int]) -> None:
         """Frames that became detail (a stride keyframe, an event): write what was held back for them."""
@@ -417,10 +433,10 @@ class RerunRecorder:
     # ---- stage handlers ----------------------------------------------------------------------------------
     def features(self, fs: FeatureSet) -> None:
         self._features = fs
-        self._log(E["orb"], rr.Points2D(np.asarray(fs.keypoints, np.float32), colors=[GREY],
-                                        radii=rr.Radius.ui_points(2)))
-        self._log(E["lsd_merged"], rr.LineStrips2D(_segments_2d(fs.segments), colors=[CYAN],
-                                                 radii=rr.Radius.ui_points(1.5)))
+        # made only for frames that are written: most frames' detail is held back and never written, and making
+        # Rerun's archetypes was ~40 % of the recorder's time in the tracking thread
+        self._log(E["orb"], _Lazy(_points2d, fs.keypoints, [GREY], 2))
+        self._log(E["lsd_merged"], _Lazy(_strips2d, fs.segments, [CYAN], 1.5))
         self._scalars("features", {"points": fs.n_points, "lines": fs.n_lines, "raw_segments": len(fs.raw_segments)})
 
     def matches(self, m: FeatureMatches) -> None:
@@ -439,10 +455,8 @@ class RerunRecorder:
         uv = getattr(t, "point_uv", None)  # the tracker's FrontendResult: its 3D-2D matches with their verdicts
         if uv is not None:
             segs = np.asarray(t.line_segments)
-            self._log(E["tracked_points"], rr.Points2D(np.asarray(uv, np.float32), colors=inlier_colors(
-                t.point_inlier), radii=rr.Radius.ui_points(3.5)))
-            self._log(E["tracked_lines"], rr.LineStrips2D(_segments_2d(segs), colors=inlier_colors(
-                t.line_inlier), radii=rr.Radius.ui_points(2.5)))
+            self._log(E["tracked_points"], _Lazy(_points2d, uv, None, 3.5, inliers=t.point_inlier))
+            self._log(E["tracked_lines"], _Lazy(_strips2d, segs, None, 2.5, inliers=t.line_inlier))
             counts.update(point_landmarks=len(uv), line_landmarks=len(segs), new_points=t.n_new_points,
                           new_lines=t.n_new_lines)
         self._scalars("tracking", counts)

@@ -152,3 +152,19 @@ def test_a_slow_frame_is_slow_against_the_running_mean():
     rhythm = [0.04, 0.04, 0.20] * 20  # 40 ms, 40 ms, then a keyframe's 200 ms: 5x the median, under 4x the mean
     assert not any(policy.timing(f, s) for f, s in enumerate(rhythm))
     assert policy.timing(len(rhythm), 2.0)  # a 2 s stall
+
+
+def test_held_back_detail_is_made_only_for_the_frames_written(tmp_path, monkeypatch):
+    """Per-frame detail (features, tracked matches) is held back as a recipe: Rerun's archetypes are made only
+    for the frames the recording gets (stride keyframes, event windows), not for every frame."""
+    import plvo_app.rerun_recorder as rrec
+
+    made: list[str] = []
+    for name in ("_points2d", "_strips2d"):
+        real = getattr(rrec, name)
+        monkeypatch.setattr(rrec, name, lambda *a, _real=real, _name=name, **k: made.append(_name) or _real(*a, **k))
+    data = _record(tmp_path / "made.rrd", DetailOptions(keyframe_stride=4))
+    written = {p: len(data.frames(f"/{rrec.E[p]}")) for p in ("orb", "tracked_points", "lsd_merged", "tracked_lines")}
+    assert 0 < written["orb"] < N  # most frames' detail was held back and never written
+    assert made.count("_points2d") == written["orb"] + written["tracked_points"]
+    assert made.count("_strips2d") == written["lsd_merged"] + written["tracked_lines"]
