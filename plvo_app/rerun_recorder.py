@@ -299,8 +299,18 @@ class RerunRecorder:
             self.rec.set_time("sensor_time", duration=self._times[frame_index])
 
     def set_status(self, status: str, frames_done: int) -> None:
-        """Stamp the recording as complete or interrupted (a static property: the last one wins)."""
+        """Stamp the recording as complete or interrupted (a static property: the last one wins). A run cut short
+        (Ctrl-C, an error) stopped inside frame `frames_done`'s step: the pose and scalars its stages had buffered
+        are dropped, so that the recording's per-frame series end with the frames done, as its status says."""
+        if status != "complete":
+            self._drop_buffered_from(int(frames_done))
         self.rec.send_property("plvo_run", rr.AnyValues(status=status, frames_done=frames_done))
+
+    def _drop_buffered_from(self, frame: int) -> None:
+        for buf in (*self._scalars_buf.values(), self._poses_buf):
+            keep = [k for k, f in enumerate(buf[0]) if f < frame]
+            for column in buf:
+                column[:] = [column[k] for k in keep]
 
     def close(self) -> None:
         if self._closed:

@@ -208,3 +208,25 @@ def test_simplified_polyline_keeps_bends_not_straights():
     assert np.linalg.norm(arc - a - t[:, None] * d, axis=1).max() <= 0.05
     assert len(simplify_polyline(arc, 0.0, 100)) <= 100 and simplify_polyline(arc, 0.0, 100)[-1] == 999
     np.testing.assert_array_equal(simplify_polyline(arc[:2], 0.05, 800), [0, 1])
+
+
+def test_a_step_cut_short_leaves_no_frame_behind_its_status(tmp_path):
+    """Ctrl-C inside frame 6's step, after its tracking: the recording says 6 frames done, and its per-frame series
+    (the camera pose, the tracking scalars, buffered until close) end at frame 5, whatever stage the signal hit."""
+    import app_fakes
+
+    path = tmp_path / "cut.rrd"
+    rec = RerunRecorder(path, RerunOptions())
+    app_fakes.drive(rec, 6, backend_lag=0)
+    rng = np.random.default_rng(1)
+    rec.on_frame(app_fakes.frame(6, rng))
+    fs = app_fakes.features(rng)
+    rec.on_stage(6, fs)
+    rec.on_stage(6, app_fakes.tracking(6, fs, False))  # the step is cut here, before its TimingResult
+    rec.set_status("interrupted", 6)
+    rec.close()
+    data = read_rrd(path)
+    assert data.properties["plvo_run:status"] == "interrupted" and data.properties["plvo_run:frames_done"] == 6
+    assert data.frames("/world/camera") == list(range(6))
+    assert data.frames("/metrics/tracking/point_inliers") == list(range(6))
+    assert data.frames("/metrics/features/points") == list(range(6))
