@@ -57,14 +57,13 @@ def point_block(
     stereo = np.isfinite(depth) & (depth > 0)
     u_r_meas = uv[:, 0] - fx * baseline / np.where(stereo, depth, 1.0)
     r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1], fx * (x - baseline) * zi + cx - u_r_meas], 1)
+    r[~stereo, 2] = 0.0
     if not jacobians:
-        r[~stereo, 2] = 0.0
         return r / sigma, None, None
     dproj = np.zeros((len(z), 3, 3))  # d(uL, v, uR)/d Xc
     dproj[:, 0, 0], dproj[:, 0, 2] = fx * zi, -fx * x * zi**2
     dproj[:, 1, 1], dproj[:, 1, 2] = fy * zi, -fy * y * zi**2
     dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
-    r[~stereo, 2] = 0.0
     dproj[~stereo, 2] = 0.0
     dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
     return r / sigma, dproj @ dXc_dxi / sigma, dproj @ R / sigma

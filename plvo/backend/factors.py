@@ -66,17 +66,22 @@ def prior_distance_and_jacobians(
     """(N,4,4), (N,3,3), (N,2,2), (N,2,3) camera-frame endpoint priors -> mean distance (N,) m, J_pose (N,6), J_line (N,4).
 
     J_pose is w.r.t. the left perturbation xi=(rho,phi) of T_cam_world, J_line w.r.t. the orth_update delta.
-    jacobians=False: (distance, None, None), the distance computed by the same operations.
+    jacobians=False: (distance, None, None).
     """
     R, t = T_cam_world[:, :3, :3], T_cam_world[:, :3, 3]
     Lw = orth_to_plucker(U, W)
     d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
     m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + cross3(t, d_c)
     nd = np.linalg.norm(d_c, axis=1)
+    dist = np.zeros(len(R))
+    errors = []
+    for k in range(2):
+        X = priors_cam[:, k]
+        e = cross3(X, d_c) - m_c  # (N,3); distance = |e| / |d_c|
+        ne = np.linalg.norm(e, axis=1)
+        dist += 0.5 * (ne / nd)
+        errors.append((X, e, ne))
     if not jacobians:
-        dist = np.zeros(len(R))
-        for k in range(2):
-            dist += 0.5 * (np.linalg.norm(cross3(priors_cam[:, k], d_c) - m_c, axis=1) / nd)
         return dist, None, None
     dL = orth_plucker_jacobian(U, W)
     dmc_dl = R @ dL[:, :3] + hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
@@ -85,15 +90,10 @@ def prior_distance_and_jacobians(
     zero = np.zeros((len(R), 3, 3))
     dmc_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)
     ddc_dxi = np.concatenate([zero, -hat_batch(d_c)], axis=2)
-    dist = np.zeros(len(R))
     J_pose = np.zeros((len(R), 6))
     J_line = np.zeros((len(R), 4))
-    for k in range(2):
-        X = priors_cam[:, k]
-        e = cross3(X, d_c) - m_c  # (N,3); distance = |e| / |d_c|
-        ne = np.linalg.norm(e, axis=1)
+    for X, e, ne in errors:
         dk = ne / nd
-        dist += 0.5 * dk
         safe = np.where(ne > 0, ne, 1.0)
         g_e = e / (safe * nd)[:, None]  # d dist / d e
         g_e[ne == 0] = 0.0
