@@ -132,11 +132,9 @@ class Frontend:
 
     # ---- the per-frame entry point -----------------------------------------------------------------------
     def features(self, image: np.ndarray) -> FeatureSet:
-        """The features `track` uses of an image (a pure function of it and the config: safe in another thread)."""
-        if self.uses_lines:
-            return self._extract(image, self.cfg.orb, self.cfg.lines)
-        # no line is used: do not spend time detecting them
-        return self._extract(image, self.cfg.orb, self.cfg.lines, points_only=True)
+        """The features `track` uses of an image (a pure function of it and the config: safe in another thread);
+        no lines are detected when none is used."""
+        return self._extract(image, self.cfg.orb, self.cfg.lines, points_only=not self.uses_lines)
 
     def track(self, frame: Frame) -> FrontendResult:
         """Estimate the pose of `frame` (the next one in order) and update the map."""
