@@ -119,12 +119,10 @@ def open_rrd(path: str | Path):
 
 def _read_chunks(p: Path, content: list[str] | None = None) -> list:
     """The chunks of the recording (those of the `content` entities and the properties, when given)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="RRD file has no footer")
-        stream = open_rrd(p).stream()
-        if content is not None:
-            stream = stream.filter(content=[*content, "/__properties/**"])
-        return list(stream)
+    stream = open_rrd(p).stream()
+    if content is not None:
+        stream = stream.filter(content=[*content, "/__properties/**"])
+    return list(stream)
 
 
 def _read_cut_short(p: Path, exc: Exception, content: list[str] | None = None) -> list:
