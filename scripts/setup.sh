@@ -34,6 +34,13 @@ extras="compare"
 stamp=".venv/.plvo-installed-$extras"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
   echo "setup: installing plvo[$extras] into .venv"
+  # pip fails half-way with a bare OSError on a full disk; say why first (the venv takes ~3 GB, pip unpacks in TMPDIR)
+  for d in . "${TMPDIR:-/tmp}"; do
+    free_mb=$(df -Pm "$d" | awk 'NR==2 {print $4}')
+    if [ "${free_mb:-0}" -lt 4000 ]; then
+      echo "setup: warning: only ${free_mb} MB free on $(cd "$d" && pwd); installing plvo needs about 4000 MB" >&2
+    fi
+  done
   # constraints.txt: the exact versions the suite passes with; pyproject.toml only states ranges
   .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[$extras]"
   touch "$stamp"
