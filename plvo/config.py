@@ -176,7 +176,8 @@ class BackendConfig:
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
     concurrent: bool = True  # run the back end and the loop closer beside the tracker (False: inline, lag 0)
-    # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker) or "thread".
+    # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker; the features are
+    # then extracted in a process of their own too, plvo.features.worker) or "thread".
     executor: str = "process"
     # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
     # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Issue 15:

@@ -104,6 +104,7 @@ class System:
         self._frontend = None
         self._backend: OrderedWorker | None = None
         self._loop: OrderedWorker | None = None
+        self._features: OrderedWorker | None = None  # the features process (deployed mode: plvo.features.worker)
         self._due: dict[str, collections.deque] = {"backend": collections.deque(), "loop": collections.deque()}
         self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0, "backend_discarded": 0}
         # One entry an applied loop or global BA correction: what it moved, when (for the soak and the log).
@@ -143,10 +144,27 @@ class System:
 
     def read_ahead(self, dataset) -> Iterator[Frame]:
         """The dataset's frames as the System is meant to take them: read, and prepared (`prepare`), up to two
-        ahead in a thread at the look-ahead's priority (plvo.priority), while the frames before are tracked."""
+        ahead in a thread at the look-ahead's priority (plvo.priority), while the frames before are tracked; in the
+        deployed mode their features are extracted in the features process, one more frame ahead."""
         from plvo.data.prefetch import prefetched
 
-        return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS)
+        if self._features is None:
+            return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS)
+        return prefetched(dataset, prepare=self._start_features, finish=self._take_features,
+                          niceness=LOOKAHEAD_NICENESS)
+
+    def _start_features(self, frame: Frame) -> bool:
+        """Queue the frame's image in the features process -> whether it was (not when it has its features)."""
+        if frame.features is not None:
+            return False
+        self._features.submit(frame.image)
+        return True
+
+    def _take_features(self, frame: Frame, started: bool) -> Frame:
+        if not started:
+            return frame
+        features, seconds = self._features.take()
+        return dataclasses.replace(frame, features=features, features_s=seconds)
 
     def wait_ready(self) -> None:
         """Wait until the worker processes have made their cores (their imports: ~1-2 s on two cores, which the
@@ -155,15 +173,18 @@ class System:
         if "workers_ready" in self.timings or self._frontend is None:
             return
         t0 = time.perf_counter()
-        for worker in (self._backend, self._loop):
-            if worker is not None:
-                worker.wait_ready()
+        for worker in self._workers:
+            worker.wait_ready()
         self.timings["workers_ready"].append(time.perf_counter() - t0)
 
     @property
+    def _workers(self) -> list[OrderedWorker]:
+        return [w for w in (self._backend, self._loop, self._features) if w is not None]
+
+    @property
     def worker_pids(self) -> list[int]:
-        """The worker processes' ids (back end, loop closer; none inline or in threads)."""
-        return [w.pid for w in (self._backend, self._loop) if w is not None and w.pid is not None]
+        """The worker processes' ids (back end, loop closer, features, those made; none inline or in threads)."""
+        return [w.pid for w in self._workers if w.pid is not None]
 
     def _build(self, calib: Calibration) -> None:
         from plvo.backend.worker import BackendCore
@@ -191,6 +212,14 @@ class System:
 
             self._loop = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode,
                                        niceness=LOOKAHEAD_NICENESS)
+        if b.concurrent and mode == "process":
+            # Off the tracker's process: there ORB and LSD shared the GIL with the tracker (plvo.features.worker)
+            from plvo.features.worker import FeaturesCore
+
+            c = self.config
+            self._features = OrderedWorker("features", FeaturesCore,
+                                           (c.orb, c.lines, not self._frontend.uses_lines), mode,
+                                           niceness=LOOKAHEAD_NICENESS)
 
     @property
     def _lags(self) -> tuple[int, int, int]:
@@ -418,9 +447,8 @@ class System:
         self.finish()
 
     def close(self) -> None:
-        for worker in (self._backend, self._loop):
-            if worker is not None:
-                worker.close()
+        for worker in self._workers:
+            worker.close()
         self.recorder.close()
 
     @property

@@ -1,7 +1,8 @@
 """Run a worker core's `process(job)` over jobs in submission order: inline, in a thread, or in a worker process.
 
-The back end and the loop closer are cores (plvo.backend.worker.BackendCore, plvo.loop.worker.LoopCore): objects
-whose outputs depend only on the jobs they were given, in order. `OrderedWorker` runs one and hands its outputs
+The back end, the loop closer and, in the deployed mode, the feature extraction are cores
+(plvo.backend.worker.BackendCore, plvo.loop.worker.LoopCore, plvo.features.worker.FeaturesCore): objects whose
+outputs depend only on the jobs they were given, in order. `OrderedWorker` runs one and hands its outputs
 back in the same order (`take`, which waits); the System decides at which frame it takes each, so where and how fast
 the core ran changes the frames a second, never the result.
 

@@ -87,14 +87,73 @@ def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeyp
     np.testing.assert_array_equal(ahead.poses, plain)
 
 
+def test_finish_collects_each_frame_one_frame_after_it_was_started():
+    """With `finish`, the reading thread starts frame i+1 before it collects frame i (the features process then has
+    the next image while it works), frames come out in order, and an error in either arrives at its own frame."""
+    events: list[tuple[str, int]] = []
+
+    def start(frame: Frame) -> int:
+        events.append(("start", frame.index))
+        return 10 * frame.index
+
+    def finish(frame: Frame, started: int) -> Frame:
+        events.append(("finish", frame.index))
+        if frame.index == 4:
+            raise ValueError("frame 4: the features process failed")
+        return Frame(frame.index, frame.time, frame.image, frame.scan, frame.calib, features_s=float(started))
+
+    got = []
+    with pytest.raises(ValueError, match="frame 4"):
+        for frame in prefetched(_Frames(6), prepare=start, finish=finish):
+            got.append((frame.index, frame.features_s))
+    assert got == [(i, 10.0 * i) for i in range(4)]
+    assert events[:4] == [("start", 0), ("start", 1), ("finish", 0), ("start", 2)]
+    for i in range(4):  # every frame is started before the frame before it is collected
+        assert events.index(("start", i + 1)) < events.index(("finish", i))
+    events.clear()
+    assert [f.features_s for f in prefetched(_Frames(3), prepare=start, finish=finish)] == [0.0, 10.0, 20.0]
+    assert events[-2:] == [("finish", 1), ("finish", 2)]  # the last frame collected after the loop
+    assert [f.features_s for f in prefetched(_Frames(3), depth=0, prepare=start, finish=finish)] == [0.0, 10.0, 20.0]
+
+
+def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth_sequence_factory, monkeypatch):
+    """The deployed mode extracts features in a process of its own (plvo.features.worker): the tracker's process
+    extracts none, and the poses equal those of the same workers run as threads (features extracted in the reading
+    thread), to the last bit."""
+    from plvo.config import SystemConfig, merge
+    from plvo.data.kitti import KittiOdometry
+    from plvo.system import System, run_system
+    from plvo.tracking.frontend import Frontend
+
+    ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
+    calls: list[str] = []
+    original = Frontend.features
+
+    def spy(self, image):
+        calls.append(threading.current_thread().name)
+        return original(self, image)
+
+    monkeypatch.setattr(Frontend, "features", spy)
+    system = System(SystemConfig(), calib=ds.calib)  # the defaults: concurrent workers in processes
+    system.wait_ready()
+    assert len(system.worker_pids) == 3  # back end, loop closer, features
+    in_process = run_system(system, ds)
+    assert calls == []
+    assert len(in_process.timings["features"]) == len(ds) and min(in_process.timings["features"]) > 0
+
+    threads = run_system(System(merge(SystemConfig(), {"backend": {"executor": "thread"}}), calib=ds.calib), ds)
+    assert calls == ["plvo-prefetch"] * len(ds)
+    np.testing.assert_array_equal(in_process.poses, threads.poses)
+
+
 def _nice() -> int:
     return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread priorities are Linux's")
 def test_the_look_ahead_runs_at_a_lower_priority(synth_sequence_factory):
-    """The System's reading thread, the line thread it uses and the loop closer's process run at
-    LOOKAHEAD_NICENESS or lower; the tracker's thread keeps its priority."""
+    """The System's reading thread, the line thread it uses, the features process and the loop closer's process run
+    at LOOKAHEAD_NICENESS or lower; the tracker's thread keeps its priority."""
     import psutil
 
     from plvo.config import SystemConfig, merge
@@ -106,17 +165,18 @@ def test_the_look_ahead_runs_at_a_lower_priority(synth_sequence_factory):
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     system = System(merge(SystemConfig(), {"loop": {"enabled": True}}), calib=ds.calib)
     seen = []
-    prepare = system.prepare
+    start = system._start_features  # the reading thread's call for each frame (the deployed mode's)
 
     def spy(frame):
         seen.append(_nice())
-        return prepare(frame)
+        return start(frame)
 
-    system.prepare = spy
+    system._start_features = spy
     mine = _nice()
     try:
         system.wait_ready()
         assert psutil.Process(system.worker_pids[1]).nice() >= LOOKAHEAD_NICENESS  # the loop closer
+        assert psutil.Process(system.worker_pids[2]).nice() >= LOOKAHEAD_NICENESS  # the features process
         assert psutil.Process(system.worker_pids[0]).nice() == psutil.Process().nice()  # the back end: as the caller
         for frame in system.read_ahead(ds):
             system.step(frame)
