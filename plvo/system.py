@@ -155,9 +155,11 @@ class System:
 
     def _start_features(self, frame: Frame) -> bool:
         """Queue the frame's image in the features process -> whether it was (not when it has its features)."""
+        from plvo.features.worker import FeaturesJob
+
         if frame.features is not None:
             return False
-        self._features.submit(frame.image)
+        self._features.submit(FeaturesJob(frame.index, frame.image))
         return True
 
     def _take_features(self, frame: Frame, started: bool) -> Frame:

@@ -202,3 +202,37 @@ def test_lower_priority_only_lowers():
     t.start()
     t.join()
     assert out == [max(7, _nice())]
+
+
+def test_a_failure_in_the_features_process_names_its_frame(synth_sequence_factory):
+    """An image the extraction refuses fails the run at that frame with one line naming the worker and the frame."""
+    import dataclasses
+
+    from plvo.config import SystemConfig
+    from plvo.data.kitti import KittiOdometry
+    from plvo.errors import WorkerError
+    from plvo.system import System
+
+    ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
+
+    class _OneBadImage:
+        calib, frame_indices = ds.calib, ds.frame_indices
+
+        def __len__(self) -> int:
+            return 6
+
+        def __getitem__(self, i: int) -> Frame:
+            frame = ds[i]
+            return dataclasses.replace(frame, image=frame.image.astype(np.float32)) if i == 4 else frame
+
+    system = System(SystemConfig(), calib=ds.calib)
+    done = []
+    try:
+        with pytest.raises(WorkerError, match=r"^the features failed on FeaturesJob at frame 4: PlvoError: "
+                                              r"extract_features: field 'image' must be \(H,W\) uint8"):
+            for frame in system.read_ahead(_OneBadImage()):
+                system.step(frame)
+                done.append(frame.index)
+    finally:
+        system.close()
+    assert done == [0, 1, 2, 3]

@@ -11,6 +11,7 @@ and the config alone, so the trajectory is the same to the last bit.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -18,8 +19,16 @@ from plvo.config import LineConfig, OrbConfig
 from plvo.types import FeatureSet
 
 
+@dataclass(frozen=True)
+class FeaturesJob:
+    """A frame's image, with its index so that a failure names the frame (plvo.workers)."""
+
+    frame_index: int
+    image: np.ndarray
+
+
 class FeaturesCore:
-    """An image in, its features and the seconds they took out (what Frame.features / features_s hold)."""
+    """A frame's image in, its features and the seconds they took out (what Frame.features / features_s hold)."""
 
     def __init__(self, orb: OrbConfig, lines: LineConfig, points_only: bool):
         from plvo.features.extract import extract_features
@@ -27,7 +36,7 @@ class FeaturesCore:
         self._extract = extract_features
         self._args = (orb, lines, points_only)
 
-    def process(self, image: np.ndarray) -> tuple[FeatureSet, float]:
+    def process(self, job: FeaturesJob) -> tuple[FeatureSet, float]:
         t0 = time.perf_counter()
-        features = self._extract(image, *self._args)
+        features = self._extract(job.image, *self._args)
         return features, time.perf_counter() - t0
