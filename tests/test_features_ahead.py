@@ -25,6 +25,21 @@ class _Frames:
         return Frame(i, 0.1 * i, np.full((4, 4), i, np.uint8), np.zeros((1, 4), np.float32), calib=None)
 
 
+def _extraction_threads(monkeypatch) -> list[str]:
+    """The names of the threads of this process that extract a frame's features from now on (a list that grows)."""
+    from plvo.tracking.frontend import Frontend
+
+    calls: list[str] = []
+    original = Frontend.features
+
+    def spy(self, image):
+        calls.append(threading.current_thread().name)
+        return original(self, image)
+
+    monkeypatch.setattr(Frontend, "features", spy)
+    return calls
+
+
 def test_prepare_runs_in_the_prefetching_thread_in_order():
     threads = []
 
@@ -58,18 +73,10 @@ def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeyp
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.system import System, run_system
-    from plvo.tracking.frontend import Frontend
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
-    calls: list[str] = []
-    original = Frontend.features
-
-    def spy(self, image):
-        calls.append(threading.current_thread().name)
-        return original(self, image)
-
-    monkeypatch.setattr(Frontend, "features", spy)
+    calls = _extraction_threads(monkeypatch)
     ahead = run_system(System(cfg, calib=ds.calib), ds)
     assert calls == ["plvo-prefetch"] * len(ds)
     assert ahead.timings["features"] and min(ahead.timings["features"]) > 0  # the extraction's own time, reported
@@ -123,17 +130,9 @@ def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.system import System, run_system
-    from plvo.tracking.frontend import Frontend
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
-    calls: list[str] = []
-    original = Frontend.features
-
-    def spy(self, image):
-        calls.append(threading.current_thread().name)
-        return original(self, image)
-
-    monkeypatch.setattr(Frontend, "features", spy)
+    calls = _extraction_threads(monkeypatch)
     system = System(SystemConfig(), calib=ds.calib)  # the defaults: concurrent workers in processes
     system.wait_ready()
     assert len(system.worker_pids) == 3  # back end, loop closer, features
