@@ -218,9 +218,7 @@ class System:
             # Off the tracker's process: there ORB and LSD shared the GIL with the tracker (plvo.features.worker)
             from plvo.features.worker import FeaturesCore
 
-            c = self.config
-            self._features = OrderedWorker("features", FeaturesCore,
-                                           (c.orb, c.lines, not self._frontend.uses_lines), mode,
+            self._features = OrderedWorker("features", FeaturesCore, self._frontend.feature_settings, mode,
                                            niceness=LOOKAHEAD_NICENESS)
 
     @property

@@ -131,10 +131,15 @@ class Frontend:
         self.uses_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
 
     # ---- the per-frame entry point -----------------------------------------------------------------------
+    @property
+    def feature_settings(self) -> tuple:
+        """(orb, lines, points_only): what the extraction of the features `track` uses takes beside the image; no
+        lines are detected when none is used. Also the features process's (plvo.features.worker)."""
+        return self.cfg.orb, self.cfg.lines, not self.uses_lines
+
     def features(self, image: np.ndarray) -> FeatureSet:
-        """The features `track` uses of an image (a pure function of it and the config: safe in another thread);
-        no lines are detected when none is used."""
-        return self._extract(image, self.cfg.orb, self.cfg.lines, points_only=not self.uses_lines)
+        """The features `track` uses of an image (a pure function of it and the config: safe in another thread)."""
+        return self._extract(image, *self.feature_settings)
 
     def track(self, frame: Frame) -> FrontendResult:
         """Estimate the pose of `frame` (the next one in order) and update the map."""
