@@ -69,7 +69,7 @@ class _Capture(logging.Handler):
 
 def _open3d_single_threaded() -> None:
     """Limit open3d (imported by the worker's core) to the calling thread. A worker process shares the machine with
-    the tracker and the other worker, so a second TBB thread finds no idle core: it adds CPU, not speed. Measured on
+    the tracker and the other workers, so a second TBB thread finds no idle core: it adds CPU, not speed. Measured on
     KITTI 04's keyframe scans (registration alone, on an idle 2-core machine): 60 ms wall and 88 ms CPU a
     registration with open3d's default two threads, 76 and 76 with one; the deployed run is CPU-bound."""
     o3d = sys.modules.get("open3d")
