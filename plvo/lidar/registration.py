@@ -90,7 +90,8 @@ def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan", vo
         raise PlvoError(f"registration: {name} must have shape (N,3) or (N,4), got {pts.shape}")
     xyz = pts[:, :3]
     r2 = np.einsum("ni,ni->n", xyz, xyz)  # NaN/inf rows fail both comparisons and are dropped
-    xyz = xyz[(r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)].astype(np.float64)
+    keep = np.flatnonzero((r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2))
+    xyz = pts.take(keep, axis=0)[:, :3].astype(np.float64)  # whole rows first: faster than a strided mask
     if len(xyz) < 100:
         raise PlvoError(f"registration: {name} has {len(xyz)} points in range, need at least 100")
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
@@ -135,8 +136,20 @@ def alignment_error(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals: np
 
     e = mean over `subset` (default: the points within radius at T) of min(|n . (T p - q)|, radius).
     """
+    return _plane_error(_nearest(src, tree, T, radius), dst, normals, radius, subset)
+
+
+def _nearest(src: np.ndarray, tree: cKDTree, T: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> (T p (N,3), distance to the nearest target point (inf beyond radius), its index (M beyond radius))."""
     p = se3.transform_points(T, src)
     dist, idx = tree.query(p, k=1, distance_upper_bound=radius)
+    return p, dist, idx
+
+
+def _plane_error(nearest: tuple[np.ndarray, np.ndarray, np.ndarray], dst: np.ndarray, normals: np.ndarray,
+                 radius: float, subset: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """alignment_error from _nearest's answer."""
+    p, dist, idx = nearest
     near = np.isfinite(dist)
     sel = near if subset is None else subset
     if not np.any(sel):
@@ -265,14 +278,11 @@ def _errors(src, dst, T_hat: np.ndarray, T_bar: np.ndarray, radius: float) -> tu
         p = p[np.linspace(0, len(p) - 1, _MAX_EVAL_POINTS).astype(int)]
     q = np.asarray(dst.points)
     tree = cKDTree(q)
-    need = []
-    for T in (T_bar, T_hat):
-        dist, idx = tree.query(se3.transform_points(T, p), k=1, distance_upper_bound=radius)
-        need.append(idx[np.isfinite(dist)])
-    need = np.unique(np.concatenate(need))
+    at_bar, at_hat = (_nearest(p, tree, T, radius) for T in (T_bar, T_hat))  # each query once: they cost most
+    need = np.unique(np.concatenate([idx[np.isfinite(dist)] for _, dist, idx in (at_bar, at_hat)]))
     n = np.zeros_like(q)
     if len(need):
         n[need] = _pca_normals(q, tree, need)
-    e_bar, near = alignment_error(p, tree, q, n, T_bar, radius)
-    e_hat, _ = alignment_error(p, tree, q, n, T_hat, radius, subset=near)
+    e_bar, near = _plane_error(at_bar, q, n, radius)
+    e_hat, _ = _plane_error(at_hat, q, n, radius, subset=near)
     return e_hat, e_bar
