@@ -13,6 +13,7 @@ likewise; a run that fails (a write, a worker, an unexpected error) or tracks le
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import shlex
@@ -150,15 +151,39 @@ def _unique(path: Path) -> Path:
     return candidate
 
 
-def _outputs(args: argparse.Namespace, sequence: str) -> Outputs:
+def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
+    """The first of path, path-2, path-3... that this process makes itself (mkdir without exist_ok), so that two
+    runs started in the same second cannot share a results folder -> (the folder, the folders made, outer first)."""
+    made = [p for p in path.parents if not p.exists()][::-1]
+    candidate, n = path, 2
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            try:
+                candidate.mkdir()
+                return candidate, [*made, candidate]
+            except FileExistsError:
+                candidate = path.with_name(f"{path.name}-{n}")
+                n += 1
+    except OSError as exc:
+        remove_made(made)
+        raise OutputError(f"{candidate}: cannot make the results folder ({exc.strerror or exc})") from None
+
+
+def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Path]]:
+    """The run's outputs -> (Outputs, the folders made for them here: the default results folder, claimed)."""
     run = f"{sequence}_{time.strftime('%Y%m%d-%H%M%S')}"
     if args.rrd is not None and args.rrd.exists():
         raise RecordingError(f"{args.rrd}: already exists; plvo-viz never overwrites a recording")
     if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
         raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
+    out, made = args.out, []
+    if out is None:
+        out, made = _claim_folder(_unique(Path("results") / run))
+        run = out.name
+    # a default recording's name is claimed when the recorder creates it (RrdFileSink, next_free)
     rrd = args.rrd or _unique(Path("recordings") / f"{run}.rrd")
-    out = args.out or _unique(Path("results") / run)
-    return Outputs(rrd.stem if args.rrd else run, rrd, out)
+    return Outputs(rrd.stem if args.rrd else run, rrd, out), made
 
 
 def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict:
@@ -225,8 +250,12 @@ def run(args: argparse.Namespace) -> int:
     if emb is not None and not any(emb[0] <= f < emb[1] for f in dataset.frame_indices):
         raise DatasetError(f"--embed-inputs {args.embed_inputs}: none of these frames runs (frames "
                            f"{dataset.frame_indices[0]}..{dataset.frame_indices[-1]})")
-    outs = _outputs(args, label)
-    made = check_outputs(outs, len(dataset), args.rrd is not None, args.out is not None)
+    outs, claimed = _outputs(args, label)
+    try:
+        made = claimed + check_outputs(outs, len(dataset), args.rrd is not None, args.out is not None)
+    except BaseException:
+        remove_made(claimed)
+        raise
     try:
         runlog = _start_outputs(outs, cfg, len(dataset))
     except BaseException:
@@ -251,7 +280,8 @@ def run(args: argparse.Namespace) -> int:
     status, reason, error, exit_code, fps, at = "failed", "", None, 0, 0.0, [dataset.frame_indices[0]]
     recorders = system.recorder.recorders  # filled below, inside the try: a failing recorder is a failed run
     try:
-        recorders.append(RerunRecorder(outs.rrd, options))
+        recorders.append(RerunRecorder(outs.rrd, options, next_free=args.rrd is None))
+        outs = dataclasses.replace(outs, rrd=recorders[-1].path)  # another run may have taken the default name
         if serve:
             from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
 

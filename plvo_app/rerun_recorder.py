@@ -185,7 +185,7 @@ class RerunRecorder:
     """
 
     def __init__(self, path: str | Path | None, options: RerunOptions | None = None,
-                 stream: rr.RecordingStream | None = None):
+                 stream: rr.RecordingStream | None = None, next_free: bool = False):
         self.path = None if path is None else Path(path)
         self.opt = options or RerunOptions()
         # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of
@@ -196,7 +196,10 @@ class RerunRecorder:
             flush_tick=timedelta(seconds=2), flush_num_bytes=4 << 20))
         # Written from Python (plvo_app/rrd_sink.py), not by rec.save: a full disk raises RecordingError at the step
         # it happens, and the file is cut back to its last complete message, still readable.
-        self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint())
+        self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint(),
+                                                                next_free=next_free)
+        if self._sink is not None:
+            self.path = self._sink.path  # next_free: path-2, -3... when path was taken
         self._frame: Frame | None = None
         self._T_world_cam: np.ndarray | None = None
         self._trail = EstimateTrail()

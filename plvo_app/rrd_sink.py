@@ -64,16 +64,26 @@ def complete_prefix(path: str | Path) -> int:
 
 
 class RrdFileSink:
-    """Streams `rec` into a new file `path` (never an existing one); `pump()` once a step, `close()` at the end."""
+    """Streams `rec` into a new file `path` (never an existing one); `pump()` once a step, `close()` at the end.
+    next_free: when `path` exists, the first free of path-2, path-3... instead of an error (the file is created
+    exclusively, so two runs started in the same second cannot both take a name)."""
 
-    def __init__(self, rec: Any, path: str | Path, default_blueprint: Any = None):
+    def __init__(self, rec: Any, path: str | Path, default_blueprint: Any = None, next_free: bool = False):
         self.path = Path(path)
         self.rec = rec
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "xb", buffering=0)  # unbuffered: a failed write raises in write()
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
+        first, n = self.path, 2
+        while True:
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._file = open(self.path, "xb", buffering=0)  # unbuffered: a failed write raises in write()
+                break
+            except FileExistsError:
+                if not next_free:
+                    raise RecordingError(f"{self.path}: cannot write the recording (File exists)") from None
+                self.path = first.with_name(f"{first.stem}-{n}{first.suffix}")
+                n += 1
+            except OSError as exc:
+                raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
         self._stream = rec.binary_stream()
         if default_blueprint is not None:
             rec.send_blueprint(default_blueprint, make_active=False, make_default=True)

@@ -135,9 +135,34 @@ def test_second_run_never_overwrites(kitti_run, monkeypatch):
     stamp = re.search(r"04_(\d{8}-\d{6})", rrd.name).group(1)
     monkeypatch.setattr(cmd_viz.time, "strftime", lambda fmt: stamp)
     args = argparse.Namespace(rrd=None, out=None)
-    second = cmd_viz._outputs(args, "04")
+    second, made = cmd_viz._outputs(args, "04")
     assert second.rrd.name == f"04_{stamp}-2.rrd" and second.out.name == f"04_{stamp}-2"
     assert (cwd / rrd.relative_to(cwd)).is_file() and (out / "poses.txt").is_file()
+    # the results folder is claimed when named (made here, empty), so a third run started before the second
+    # wrote anything gets a name of its own, and a run that stops early removes what it claimed
+    assert made == [second.out] and second.out.is_dir() and not any(second.out.iterdir())
+    third, _ = cmd_viz._outputs(args, "04")
+    assert third.out.name == f"04_{stamp}-3" and third.rrd.name == f"04_{stamp}-3.rrd"
+    cmd_viz.remove_made(made)
+    assert not second.out.exists() and out.is_dir()
+
+
+def test_default_recording_name_taken_meanwhile(tmp_path):
+    """A default recording name taken between naming and writing (another run started in the same second): the
+    recorder takes the next free name, and the other file is untouched; a name the user gave is never taken over."""
+    import rerun as rr
+
+    from plvo.errors import RecordingError
+    from plvo_app.rrd_sink import RrdFileSink
+
+    taken = tmp_path / "04_20261202-201804.rrd"
+    taken.write_bytes(b"another run's")
+    sink = RrdFileSink(rr.RecordingStream("plvo"), taken, next_free=True)
+    sink.close()
+    assert sink.path == tmp_path / "04_20261202-201804-2.rrd" and sink.path.stat().st_size > 0
+    assert taken.read_bytes() == b"another run's"
+    with pytest.raises(RecordingError, match="File exists"):
+        RrdFileSink(rr.RecordingStream("plvo"), taken)
 
 
 def test_ctrl_c_keeps_a_readable_recording(kitti_root, tmp_path):
