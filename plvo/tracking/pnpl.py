@@ -24,6 +24,13 @@ log = logging.getLogger(__name__)
 MIN_CORRESPONDENCES = 4
 # The refined prediction is kept over RANSAC's pose unless RANSAC explains more than 1 / 0.9 as many matches.
 PREDICTION_MARGIN = 0.9
+# poselib 2.0.5's PnPL RANSAC (points with lines; points alone are exact) returns poses that differ in the last bits
+# between calls with the same input and seed: 30 calls on one town frame gave 30 poses, up to 2e-9 apart. Amplified
+# by the rest of the pipeline, a sequence's trajectory depended on what the process had run before it (the second
+# of two runs of town 21 in one process ended 1.6 cm from the first; `plvo eval run` reuses its worker processes).
+# Refined on its inliers the pose differs by ~1e-13 between calls; it is snapped to this grid (tangent space, m and
+# rad), far below any noise and far above those differences, so that runs repeat exactly.
+_SNAP = 1e-6
 
 
 @dataclass(frozen=True)
@@ -158,6 +165,11 @@ def _refine(K, T, P, uv, L, S, cfg: TrackingConfig) -> np.ndarray:
     return _from_poselib(pose)
 
 
+def _snap(T: np.ndarray) -> np.ndarray:
+    """T_world_cam on the _SNAP grid of its tangent (see _SNAP)."""
+    return se3.exp(np.round(se3.log(T) / _SNAP) * _SNAP)
+
+
 def _failure(N, M, init, message) -> PnPLResult:
     T = np.eye(4) if init is None else np.array(init, dtype=float)
     return PnPLResult(T, np.zeros(N, bool), np.zeros(M, bool), 0, False, message,
@@ -198,6 +210,7 @@ def solve_pnpl(
     P, U, L, S = pts_world[pv], uv[pv], lines_world[lv], segments[lv]
     T, n_iter = _ransac(K, P, U, L, S, T_world_cam_init, cfg)
     T, n_best = _refine_on_inliers(K, T, P, U, L, S, cfg)
+    T = _snap(T)
     used_initial = False
     if T_world_cam_init is not None:
         # RANSAC can settle on a wrong pose that explains a few more matches when they are few and far away
