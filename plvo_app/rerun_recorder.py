@@ -311,7 +311,9 @@ class RerunRecorder:
 
     def _drop_buffered_from(self, frame: int) -> None:
         for buf in (*self._scalars_buf.values(), self._poses_buf):
-            keep = [k for k, f in enumerate(buf[0]) if f < frame]
+            # an interrupted step may have appended to some of a buffer's columns only: the rows all of them have
+            n = min(len(column) for column in buf)
+            keep = [k for k, f in enumerate(buf[0][:n]) if f < frame]
             for column in buf:
                 column[:] = [column[k] for k in keep]
 

@@ -122,10 +122,11 @@ class EstimateTrail:
 
     def on_tracking(self, frame_index: int, T_world_cam: np.ndarray) -> None:
         T_kf = self.kf_pose.get(self._ref_kf, np.eye(4))
+        p = transform_points(inv(T_kf), np.asarray(T_world_cam, float)[None, :3, 3])[0]
         self._version += 1
         self.frames.append(int(frame_index))
         self._ref.append(self._ref_kf)
-        self._p.append(transform_points(inv(T_kf), np.asarray(T_world_cam, float)[None, :3, 3])[0])
+        self._p.append(p)
 
     def on_keyframe(self, kf_id: int, frame_index: int, T_world_cam: np.ndarray) -> None:
         self.kf_pose[int(kf_id)] = np.asarray(T_world_cam, float)
@@ -140,9 +141,11 @@ class EstimateTrail:
 
     def positions(self) -> np.ndarray:
         """(N,3) float64 world positions of every frame so far, in order."""
-        if not self.frames:
+        # Ctrl-C raises anywhere in a step, also between the appends above: the rows all three lists have
+        n = min(len(self.frames), len(self._ref), len(self._p))
+        if not n:
             return np.zeros((0, 3))
-        ref, p = np.asarray(self._ref), np.asarray(self._p)
+        ref, p = np.asarray(self._ref[:n]), np.asarray(self._p[:n])
         out = p.copy()
         has = ref >= 0
         if has.any():  # all at once: 4541 frames of 1514 keyframes in 1.9 ms, a loop over keyframes took 48 ms

@@ -230,3 +230,26 @@ def test_a_step_cut_short_leaves_no_frame_behind_its_status(tmp_path):
     assert data.frames("/world/camera") == list(range(6))
     assert data.frames("/metrics/tracking/point_inliers") == list(range(6))
     assert data.frames("/metrics/features/points") == list(range(6))
+
+
+def test_a_step_cut_between_two_appends_still_closes(tmp_path):
+    """Ctrl-C raises between any two bytecodes: here inside frame 6's step, after the estimate trail took the frame
+    and its reference keyframe but not its position, and a scalar buffer its frame and time but not its value (CI
+    met the first: closing raised an IndexError and the buffered scalars were lost). The recording still closes
+    with every series ending at frame 5."""
+    import app_fakes
+
+    path = tmp_path / "cut.rrd"
+    rec = RerunRecorder(path, RerunOptions())
+    app_fakes.drive(rec, 6, backend_lag=0)
+    rec._trail.frames.append(6)
+    rec._trail._ref.append(rec._trail._ref[-1])
+    frames, times, _ = rec._scalars_buf["metrics/time/total"]
+    frames.append(6)
+    times.append(0.6)
+    rec.set_status("interrupted", 6)
+    rec.close()
+    data = read_rrd(path)
+    assert data.frames("/metrics/time/total") == list(range(6))
+    assert data.frames("/world/camera") == list(range(6))
+    assert len(data.temporal["/world/trajectory/est"]) > 0
