@@ -142,15 +142,6 @@ def _synthetic_town() -> tuple[Path, str]:
         return Path(default_sequence_root(progress)), DEFAULT_SEQUENCE
 
 
-def _unique(path: Path) -> Path:
-    """`path`, or path with -2, -3... appended to its stem when taken."""
-    candidate, n = path, 2
-    while candidate.exists():
-        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
-        n += 1
-    return candidate
-
-
 def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
     """The first of path, path-2, path-3... that this process makes itself (mkdir without exist_ok), so that two
     runs started in the same second cannot share a results folder -> (the folder, the folders made, outer first)."""
@@ -179,10 +170,10 @@ def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Pat
         raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
     out, made = args.out, []
     if out is None:
-        out, made = _claim_folder(_unique(Path("results") / run))
+        out, made = _claim_folder(Path("results") / run)
         run = out.name
-    # a default recording's name is claimed when the recorder creates it (RrdFileSink, next_free)
-    rrd = args.rrd or _unique(Path("recordings") / f"{run}.rrd")
+    # a default recording's name is claimed when the recorder creates it (RrdFileSink, next_free: run-2.rrd...)
+    rrd = args.rrd or Path("recordings") / f"{run}.rrd"
     return Outputs(rrd.stem if args.rrd else run, rrd, out), made
 
 

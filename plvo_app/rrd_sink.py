@@ -72,18 +72,19 @@ class RrdFileSink:
         self.path = Path(path)
         self.rec = rec
         first, n = self.path, 2
-        while True:
-            try:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                self._file = open(self.path, "xb", buffering=0)  # unbuffered: a failed write raises in write()
-                break
-            except FileExistsError:
-                if not next_free:
-                    raise RecordingError(f"{self.path}: cannot write the recording (File exists)") from None
-                self.path = first.with_name(f"{first.stem}-{n}{first.suffix}")
-                n += 1
-            except OSError as exc:
-                raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            while True:
+                try:
+                    self._file = open(self.path, "xb", buffering=0)  # unbuffered: a failed write raises in write()
+                    break
+                except FileExistsError:
+                    if not next_free:
+                        raise
+                    self.path = first.with_name(f"{first.stem}-{n}{first.suffix}")
+                    n += 1
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
         self._stream = rec.binary_stream()
         if default_blueprint is not None:
             rec.send_blueprint(default_blueprint, make_active=False, make_default=True)

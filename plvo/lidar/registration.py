@@ -130,15 +130,6 @@ def _prepared(scan, cfg: RegistrationConfig, name: str) -> PreparedScan:
     return prepare(scan, cfg, name)
 
 
-def alignment_error(src: np.ndarray, tree: cKDTree, dst: np.ndarray, normals: np.ndarray, T: np.ndarray,
-                    radius: float, subset: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """(N,3) src, target tree/points (M,3)/normals (M,3), (4,4) T_dst_src -> (e metres, (N,) bool within radius).
-
-    e = mean over `subset` (default: the points within radius at T) of min(|n . (T p - q)|, radius).
-    """
-    return _plane_error(_nearest(src, tree, T, radius), dst, normals, radius, subset)
-
-
 def _nearest(src: np.ndarray, tree: cKDTree, T: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """-> (T p (N,3), distance to the nearest target point (inf beyond radius), its index (M beyond radius))."""
     p = se3.transform_points(T, src)
@@ -148,7 +139,10 @@ def _nearest(src: np.ndarray, tree: cKDTree, T: np.ndarray, radius: float) -> tu
 
 def _plane_error(nearest: tuple[np.ndarray, np.ndarray, np.ndarray], dst: np.ndarray, normals: np.ndarray,
                  radius: float, subset: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """alignment_error from _nearest's answer."""
+    """(e metres, (N,) bool within radius) from _nearest's answer for T, target points dst (M,3) and their normals.
+
+    e = mean over `subset` (default: the points within radius at T) of min(|n . (T p - q)|, radius).
+    """
     p, dist, idx = nearest
     near = np.isfinite(dist)
     sel = near if subset is None else subset
