@@ -9,7 +9,9 @@ read from the map at that moment, to the back end (registration, scale correctio
 The map has one owner and one writer: this thread. Workers return typed corrections, which the System applies
 (`LandmarkMap.apply`) at fixed points of the run, waiting there for a worker that is late:
 - a keyframe's back-end result at the start of frame (its frame + backend.max_lag_frames), or before the next
-  keyframe's window is read, whichever comes first;
+  keyframe's window is read, whichever comes first; in the latter case the next keyframe was tracked on the map
+  before that result, and is solved again on the refined one (`Frontend.relocalise_keyframe`) before its window
+  is read;
 - a keyframe's loop result at the start of frame (its frame + loop.max_lag_frames); after an applied loop
   correction the global bundle adjustment is submitted, its result applied loop.global_ba_lag_frames later.
 So the tracker runs ahead of the workers by a bounded lag and the trajectory does not depend on the machine's load
@@ -106,7 +108,8 @@ class System:
         self._loop: OrderedWorker | None = None
         self._features: OrderedWorker | None = None  # the features process (deployed mode: plvo.features.worker)
         self._due: dict[str, collections.deque] = {"backend": collections.deque(), "loop": collections.deque()}
-        self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0, "backend_discarded": 0}
+        self.loop_stats = {"corrections": 0, "global_ba": 0, "global_ba_rejected": 0, "backend_discarded": 0,
+                           "relocalised": 0}
         # One entry an applied loop or global BA correction: what it moved, when (for the soak and the log).
         self.corrections: list[dict[str, Any]] = []
         self._calib: Calibration | None = None
@@ -280,7 +283,8 @@ class System:
         lag_b, lag_l, _ = self._lags
         if self._backend is not None:
             with self._clock.stage("apply"):
-                self._apply_all("backend")  # the window read next includes every earlier result
+                if self._apply_all("backend"):  # the window read next includes every earlier result
+                    self._relocalise()
             with self._clock.stage("backend_submit"):
                 self._submit("backend", self._backend_job(kf), frame.index + lag_b)
             if lag_b == 0:
@@ -336,9 +340,21 @@ class System:
             while due and due[0] <= frame_index:
                 self._apply_next(which)
 
-    def _apply_all(self, which: str) -> None:
+    def _apply_all(self, which: str) -> int:
+        """Wait for and apply every pending result of `which` -> how many."""
+        n = 0
         while self._due[which]:
             self._apply_next(which)
+            n += 1
+        return n
+
+    def _relocalise(self) -> None:
+        """The keyframe just made was tracked before the back-end results just applied: solve it again on the map
+        they refined (Frontend.relocalise_keyframe), so that it starts its window where inline it would."""
+        correction = self._frontend.relocalise_keyframe()
+        if correction is not None:
+            self.map.apply(correction)
+            self.loop_stats["relocalised"] += 1
 
     def _apply_next(self, which: str) -> None:
         self._due[which].popleft()

@@ -282,3 +282,39 @@ def test_sharp_turn_that_ends_abruptly_is_recovered_without_reinitialising():
     assert "rescue" in res[15].timings and "rescue" in res[25].timings  # both ends of the turn needed it
     t_err, r_err = drift(world, res)
     assert t_err / path_length(world.poses) < 0.01 and r_err < 0.5, (t_err, r_err)
+
+
+def test_a_keyframe_tracked_before_a_back_end_result_is_solved_again_on_the_refined_map():
+    """Deployed, keyframe k+1 is tracked while the back end refines the window of k; the map then carries k+1
+    rigidly with k, but the landmarks k+1 was solved on moved each by its own refinement. Here the refinement is a
+    scale correction (+10 % about keyframe 0, what the back end's scale step does): carried rigidly, the newest
+    keyframe sits 0.3 m from where the scaled landmarks put it; relocalised, where they put it, and the landmarks
+    it made itself move with it."""
+    from plvo.tracking.corrections import BACKEND, MapCorrection
+
+    world = World(trajectory(7, speed=1.0), wrong_match_frac=0.0)
+    fe, res = run(world, CFG)
+    m = fe.map
+    assert [r.is_keyframe for r in res] == [True, False, False, True, False, False, True]
+    newest = m.n_keyframes - 1
+    s = 1.1
+    window = m.window_data(np.arange(newest))  # the window read before the newest keyframe was made
+    origin = window.T_world_cam[0][:3, 3]
+    T_after = window.T_world_cam.copy()
+    T_after[:, :3, 3] = origin + s * (T_after[:, :3, 3] - origin)
+    scaled = origin + s * (window.points - origin)
+    m.apply(MapCorrection(BACKEND, window.kf_ids, window.T_world_cam, T_after, point_ids=window.point_ids,
+                          point_positions=scaled))
+    want = origin + s * (res[-1].T_world_cam[:3, 3] - origin)  # where the scaled map puts the newest keyframe
+    carried = m.keyframe_pose(newest)
+    assert np.linalg.norm(carried[:3, 3] - want) > 0.25  # rigid carrying alone leaves it off
+    own_ids, first = m.point_ids_and_first_keyframes()
+    own_ids = own_ids[first == newest]
+    own_local = se3.transform_points(se3.inv(carried), m.point_positions(own_ids))
+    correction = fe.relocalise_keyframe()
+    assert correction is not None and list(correction.keyframe_ids) == [newest]
+    m.apply(correction)
+    T = m.keyframe_pose(newest)
+    assert np.linalg.norm(T[:3, 3] - want) < 0.05, (T[:3, 3], want)
+    assert np.allclose(se3.transform_points(se3.inv(T), m.point_positions(own_ids)), own_local, atol=1e-9)
+    assert np.allclose(m.keyframe_pose(newest - 1), T_after[-1], atol=1e-12)  # older keyframes untouched

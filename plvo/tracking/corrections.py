@@ -26,6 +26,8 @@ import numpy as np
 from plvo.geometry import se3
 
 BACKEND, LOOP, GLOBAL_BA = "back end", "loop", "global BA"
+# the newest keyframe solved again after a back-end result it was tracked without (Frontend.relocalise_keyframe)
+RELOCALISED = "relocalised"
 
 
 def _none(shape: tuple[int, ...], dtype: type = float):
@@ -93,7 +95,7 @@ class GlobalData:
 class MapCorrection:
     """One worker result for the map.
 
-    source: BACKEND | LOOP | GLOBAL_BA; keyframe_ids (K,) ascending; T_before (K,4,4) the poses the worker started
+    source: BACKEND | LOOP | GLOBAL_BA | RELOCALISED; keyframe_ids (K,) ascending; T_before (K,4,4) the poses the worker started
     from (its snapshot's), T_after (K,4,4) what it found; point_ids (P,) with point_positions (P,3) and line_ids
     (L,) with line_endpoints (L,2,3), world, refined; edges: graph edges to add; base_version: the map version of
     the snapshot (for the log and the tests).

@@ -165,7 +165,7 @@ def _refine(K, T, P, uv, L, S, cfg: TrackingConfig) -> np.ndarray:
     return _from_poselib(pose)
 
 
-def _snap(T: np.ndarray) -> np.ndarray:
+def snap_pose(T: np.ndarray) -> np.ndarray:
     """T_world_cam on the _SNAP grid of its tangent (see _SNAP)."""
     return se3.exp(np.round(se3.log(T) / _SNAP) * _SNAP)
 
@@ -210,7 +210,7 @@ def solve_pnpl(
     P, U, L, S = pts_world[pv], uv[pv], lines_world[lv], segments[lv]
     T, n_iter = _ransac(K, P, U, L, S, T_world_cam_init, cfg)
     T, n_best = _refine_on_inliers(K, T, P, U, L, S, cfg)
-    T = _snap(T)
+    T = snap_pose(T)
     used_initial = False
     if T_world_cam_init is not None:
         # RANSAC can settle on a wrong pose that explains a few more matches when they are few and far away
