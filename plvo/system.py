@@ -352,9 +352,13 @@ class System:
         """The keyframe just made was tracked before the back-end results just applied: solve it again on the map
         they refined (Frontend.relocalise_keyframe), so that it starts its window where inline it would."""
         correction = self._frontend.relocalise_keyframe()
-        if correction is not None:
-            self.map.apply(correction)
-            self.loop_stats["relocalised"] += 1
+        if correction is None:
+            return
+        self.map.apply(correction)
+        self.loop_stats["relocalised"] += 1
+        moved = float(np.linalg.norm(correction.T_after[0][:3, 3] - correction.T_before[0][:3, 3]))
+        log.debug("keyframe %d solved again on the refined map: moved %.3f m", correction.keyframe_ids[0], moved)
+        self._emit(self._frame_now, [MetricsResult(self._frame_now, {"relocalised_m": moved})])
 
     def _apply_next(self, which: str) -> None:
         self._due[which].popleft()
