@@ -93,12 +93,12 @@ class GlobalData:
 
 @dataclass(frozen=True)
 class MapCorrection:
-    """One worker result for the map.
+    """One worker result for the map (or the tracker's relocalisation of its newest keyframe).
 
-    source: BACKEND | LOOP | GLOBAL_BA | RELOCALISED; keyframe_ids (K,) ascending; T_before (K,4,4) the poses the worker started
-    from (its snapshot's), T_after (K,4,4) what it found; point_ids (P,) with point_positions (P,3) and line_ids
-    (L,) with line_endpoints (L,2,3), world, refined; edges: graph edges to add; base_version: the map version of
-    the snapshot (for the log and the tests).
+    source: BACKEND | LOOP | GLOBAL_BA | RELOCALISED; keyframe_ids (K,) ascending; T_before (K,4,4) the poses the
+    worker started from (its snapshot's), T_after (K,4,4) what it found; point_ids (P,) with point_positions (P,3)
+    and line_ids (L,) with line_endpoints (L,2,3), world, refined; edges: graph edges to add; base_version: the map
+    version of the snapshot (for the log and the tests).
     """
 
     source: str
