@@ -32,6 +32,7 @@ from collections.abc import Callable
 from typing import Any
 
 from plvo.errors import WorkerError
+from plvo.heap import keep_freed_memory
 from plvo.priority import lower_priority
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,7 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int, niceness: 
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    keep_freed_memory()  # a keyframe's scan arrays reused, not faulted in again each time (plvo.heap)
     capture = _Capture()
     root = logging.getLogger()
     root.handlers[:] = [capture]

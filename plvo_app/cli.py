@@ -16,12 +16,16 @@ import sys
 from collections.abc import Sequence
 
 from plvo.errors import PlvoError
+from plvo.heap import keep_freed_memory
 from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt
 
 # One OpenBLAS thread unless the user chose otherwise: set here, before any subcommand imports numpy. OpenBLAS's
 # extra thread spins on 2 cores that the tracker, the line thread and the back end already share: on KITTI 04
 # (51 frames) the whole system used ~2.5x the CPU time with the default threads and ran 1.5-3.5x slower.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# The tracking process reads, decodes and ships a frame's arrays every frame: keep freed memory for the next one
+# (plvo.heap; the worker processes do the same).
+keep_freed_memory()
 
 # name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

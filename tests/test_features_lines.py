@@ -232,3 +232,18 @@ def test_bad_image_raises():
         detect_lsd(np.zeros((10, 10, 3), np.uint8), LineConfig())
     with pytest.raises(PlvoError, match="LBD"):
         compute_lbd(np.zeros((10, 10), np.float32), np.zeros((1, 4)))
+
+
+def test_the_reused_detector_finds_what_a_fresh_one_finds():
+    """detect_lsd keeps one LSD per thread between images: across images of other content and size it must give
+    exactly what a new detector gives each image (its per-image buffers must not carry over)."""
+    cfg = LineConfig()
+    scenes = [draw([(bar(*EDGES[0], 12.0), 200)], seed=1),
+              draw([(bar(*EDGES[1], 9.0), 30), (bar(*EDGES[2], 15.0), 220)], seed=2)[40:300, 100:900],
+              draw([(bar(*EDGES[2], 6.0), 180)], background=90, seed=3)]
+    for image in scenes + scenes[::-1]:
+        fresh = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, cfg.lsd_scale).detect(image)[0]
+        fresh = np.zeros((0, 4)) if fresh is None else fresh.reshape(-1, 4)
+        got = detect_lsd(image, cfg)
+        assert len(got) == len(fresh) > 0
+        np.testing.assert_array_equal(got, fresh.astype(np.float64) + 0.5 * (1.0 / cfg.lsd_scale - 1.0))

