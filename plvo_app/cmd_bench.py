@@ -126,14 +126,28 @@ def versions() -> dict[str, str | None]:
     return out
 
 
-def _rerun_factory(folder: Path):
-    from plvo_app.rerun_recorder import RerunRecorder
+class RerunFactory:
+    """run -> (a RerunRecorder writing folder/bench_<run>.rrd, that path); picklable, so that a deployed run can make
+    its recorder in a fresh process (plvo.eval.bench.deployed_figures)."""
 
-    def make(run: int):
-        path = folder / f"bench_{run}.rrd"
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+
+    def __call__(self, run: int):
+        from plvo_app.rerun_recorder import RerunRecorder
+
+        path = self.folder / f"bench_{run}.rrd"
         return RerunRecorder(path), path
 
-    return make
+
+class Reopen:
+    """Opens the dataset the arguments name again (picklable: for the deployed runs' fresh processes)."""
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+
+    def __call__(self):
+        return _open(self.args)[0]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     if args.soak:
         return _soak(args, cfg, dataset, info, machine, command)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
-        report = run_bench(dataset, cfg, stages, args.repeat, _rerun_factory(Path(tmp)), info)
+        report = run_bench(dataset, cfg, stages, args.repeat, RerunFactory(Path(tmp)), info, Reopen(args))
     if "system" in stages:
         from plvo_app.recording_levels import measure_levels
 

@@ -104,6 +104,7 @@ def test_whole_system_with_and_without_recording(synth_seq, tmp_path):
     assert r["memory"]["system_recording_on"]["peak_mb"] > 100
     # What a user gets from plvo-viz (from disk, recording on), with KISS-ICP on the same scans beside it
     dep = r["deployed"]
+    assert dep["fresh_processes"] is True  # each run in a new process, as a user runs plvo-viz
     assert dep["runs"][0]["frames"] == 6 and dep["runs"][0]["recording"] and dep["runs"][0]["rrd_bytes"] > 10_000
     assert dep["fps"] == pytest.approx(6 / dep["runs"][0]["wall_s"], rel=1e-2)
     if dep["kiss_icp_fps"] is not None:  # kiss-icp is in the compare extra that make test installs
@@ -168,3 +169,25 @@ def test_deployed_runs_come_before_the_frames_are_preloaded(synth_seq, monkeypat
     dataset = open_dataset(synth_seq, None, slice(0, 3))
     report = bench.run_bench(dataset, SystemConfig(), frozenset({"system"}), 1, lambda run: (None, None))
     assert order == ["deployed", "load"] and report["deployed"] == {"fps": 1.0}
+
+
+def _pid_and_module_count() -> tuple[int, int]:
+    import os
+    import sys
+
+    return os.getpid(), len(sys.modules)
+
+
+def _fails() -> None:
+    raise ValueError("no scans")
+
+
+def test_a_fresh_process_runs_the_call_and_reports_its_failure_in_one_line():
+    import os
+
+    from plvo.eval.bench import in_fresh_process
+
+    pid, _ = in_fresh_process(_pid_and_module_count)
+    assert pid != os.getpid()
+    with pytest.raises(RuntimeError, match=r"^bench: _fails in a fresh process failed: ValueError: no scans"):
+        in_fresh_process(_fails)
