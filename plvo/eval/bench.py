@@ -463,36 +463,17 @@ def _kiss_run(reopen: Callable[[], Any]) -> float | None:
     return kiss_fps(reopen())
 
 
-def _child(conn, fn: Callable, args: tuple) -> None:
-    try:
-        conn.send((True, fn(*args)))
-    except BaseException as exc:  # noqa: BLE001 - reported in the parent
-        conn.send((False, f"{type(exc).__name__}: {exc}"))
-    finally:
-        conn.close()
-
-
 def in_fresh_process(fn: Callable, *args: Any) -> Any:
-    """fn(*args) in a new spawned (non-daemon: it makes worker processes of its own) process -> its result; a
-    failure there is raised here as a RuntimeError of one line."""
-    import multiprocessing
+    """fn(*args) in a new spawned process (plvo.eval.runner's pool of one: its processes may make worker processes
+    of their own and end with this one) -> its result; a failure there is raised here as a RuntimeError of one line."""
+    from plvo.eval.runner import worker_pool
 
-    ctx = multiprocessing.get_context("spawn")
-    receive, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, fn, args), name="plvo-bench-run", daemon=False)
-    proc.start()
-    send.close()
-    try:
-        ok, out = receive.recv()
-    except EOFError:
-        ok, out = False, "the process ended without a result"
-    finally:
-        receive.close()
-        proc.join()
-    if not ok:
-        raise RuntimeError(f"bench: {getattr(fn, '__name__', fn)} in a fresh process failed: {out} "
-                           f"(exit code {proc.exitcode})")
-    return out
+    with worker_pool(1) as pool:
+        try:
+            return pool.submit(fn, *args).result()
+        except Exception as exc:  # noqa: BLE001 - the child's error (or BrokenProcessPool), as one line
+            raise RuntimeError(f"bench: {getattr(fn, '__name__', fn)} in a fresh process failed: "
+                               f"{type(exc).__name__}: {exc}") from exc
 
 
 def kiss_fps(dataset) -> float | None:
