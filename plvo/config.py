@@ -116,13 +116,14 @@ class TrackingConfig:
     outlier_reproj_px: float = 3.0
     search_radius_px: float = 8.0  # landmarks of recent keyframes re-found this close to their projection
     search_keyframes: int = 2  # how many recent keyframes' landmarks are searched for (0: previous frame only)
-    # Added by issue 7: line landmarks re-found by projection (plvo/tracking/search.py), beside the 2D-2D matches.
+    # Line landmarks re-found by projection (plvo/tracking/search.py), beside the 2D-2D matches.
     search_lines: bool = True
     line_search_px: float = 4.0  # both endpoints of a segment this close to the projected landmark line
     line_search_angle_deg: float = 3.0
     line_search_overlap: float = 0.3  # shared extent along the line, as a share of the shorter segment
-    # Issue 16: every this many keyframes the map drops the landmarks nothing can use any more (seen by one keyframe,
-    # out of every back-end window and tracker search; LandmarkMap.drop_unreachable); 0 keeps them all.
+    # Every this many keyframes the map drops the landmarks nothing can use any more (seen by one keyframe, out of
+    # every back-end window and tracker search; LandmarkMap.drop_unreachable), so memory follows what is kept, not
+    # the length of the run; 0 keeps them all.
     drop_unreachable_every: int = 10
 
 
@@ -130,7 +131,7 @@ class TrackingConfig:
 class RegistrationConfig:
     method: str = "ndt"  # "ndt", or "icp" / "gicp" directly
     fallback: str = "icp"  # used when NDT fails; "none" to disable
-    voxel_m: float = 0.6  # issue 8: 0.5 -> 0.6 (same accuracy on seq 04, 2/3 of the points)
+    voxel_m: float = 0.6  # as accurate as 0.5 on 04 with 2/3 of the points (docs/results/defaults.md)
     ndt_resolution_m: float = 1.0
     max_iterations: int = 30
     max_range_m: float = 60.0
@@ -140,8 +141,8 @@ class RegistrationConfig:
     min_fitness: float = 0.3  # fewer source points with an NDT/ICP correspondence: registration failed
     max_jump_m: float = 1.5  # a result this far from the initial guess (translation) counts as failed
     max_jump_deg: float = 5.0
-    # "inverse": exp(-2 (e_bar/e_hat)^2) (default since issue 8: a registration worse than the tracker's pose gets a
-    # small weight; see plvo/lidar/registration.py); "paper": exp(-2 (e_hat/e_bar)^2) as printed in the paper.
+    # "inverse": exp(-2 (e_bar/e_hat)^2), so that a registration worse than the tracker's pose gets a small weight
+    # (plvo/lidar/registration.py, docs/results/defaults.md); "paper": exp(-2 (e_hat/e_bar)^2) as printed.
     zeta_formula: str = "inverse"
 
 
@@ -157,21 +158,17 @@ class BackendConfig:
     sigma_line: float = 0.2  # paper, III: Sigma^L = 0.2 I
     # The paper sets the relative-pose information to zeta I; zeta is dimensionless, so base standard deviations
     # (metres, degrees) scale it against the reprojection factors: information = zeta / sigma^2 per component.
-    # Issue 8: 0.05 m / 0.05 rad let the 0.1 px point factors ignore the lidar (the back end made seq 04 worse);
-    # 0.5 mm in these units (the point sigma is ~10x below real pixel noise) lets it fix the scale. Rotation: the
-    # registration's rotation is far better than its translation in these units (rms 0.33 mrad vs 33 mm a keyframe
-    # pair on 04 with the KITTI scan correction, 0.017 mrad vs 0.9 mm on the synthetic town), so 0.5 mrad let the
-    # visual factors set the rotations and the heading drifted; 0.0003 deg (5 urad) keeps that ratio. Measured
-    # (inline, no loop closing): town 20, 1061 m: devkit 0.44 -> 0.08 %, 0.0017 -> 0.0002 deg/m; 04 over
-    # 10/20/40 m: 0.58 -> 0.58 %, 0.0071 -> 0.0045 deg/m.
+    # Small enough that the lidar's relative poses, not the 0.1 px point factors (~10x below real pixel noise), set
+    # the scale; the rotation sigma is smaller again because the registration's rotation is ~100x better than its
+    # translation in these units, and a looser one lets the visual factors set the heading (docs/results/defaults.md).
     sigma_relative_pose: float = 0.0005
     sigma_relative_rotation_deg: float = 0.0003
-    # Virtual baseline of the depth-prior (stereo-form) point factors: their depth weight grows with b^2 (issue 8:
-    # 0.2 gave seq 04 0.72 / 0.50 / 0.21 % but worse rotations there and worse synthetic errors; KITTI's 0.54 kept).
+    # Virtual baseline of the depth-prior (stereo-form) point factors: their depth weight grows with b^2. KITTI's
+    # 0.54: a smaller one gave worse rotations on 04 and worse errors on the towns (docs/results/defaults.md).
     stereo_baseline_m: float = 0.54
     huber_point: float = 2.0
     huber_line: float = 2.0
-    iterations: int = 5  # issue 8: was 10; mean window error 7.56 vs 7.51 mm on synthetic windows, at half the time
+    iterations: int = 5  # as good a window as 10 at half the time (docs/results/defaults.md)
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
@@ -180,10 +177,9 @@ class BackendConfig:
     # then extracted in a process of their own too, plvo.features.worker) or "thread".
     executor: str = "process"
     # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
-    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Issue 15:
-    # 3 -> 6. With 3, on 04 (a keyframe every third frame) the result was due at the start of the next keyframe's
-    # frame, so that frame's tracking and depth priors (~45 ms) waited for the back end and then delayed the next
-    # job: the two were in series. With 6 it is applied when that keyframe is made, after its tracking.
+    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Longer
+    # than the keyframe spacing, so that the next keyframe's frame is tracked while the back end works instead of
+    # waiting for it (docs/results/defaults.md).
     max_lag_frames: int = 6
 
 
@@ -194,7 +190,7 @@ class LoopConfig:
     min_score: float = 0.3
     consistency: int = 3  # consecutive keyframes that must agree
     min_inliers: int = 30
-    # Added by the loop-closure issue (9); see plvo/loop/*.py.
+    # The loop closer's detection and verification (plvo/loop/).
     vocab_dir: str = ""  # folder with orb.npz / lbd.npz; empty: the shipped plvo/assets/vocab
     min_neighbour_score: float = 0.005  # skip the query when even the previous keyframe scores below this
     neighbours: int = 1  # normalise by the best combined score among this many previous keyframes
@@ -220,8 +216,8 @@ class LoopConfig:
     global_ba_max_points: int = 15000
     # A global BA result moving a keyframe further from the pose graph's solution than max_move_m + move_fraction x
     # the pose graph's largest correction is not applied (global_ba.implausible).
-    # Measured on the 1 km loop of synthetic sequence 21: results moving a mid-loop keyframe 1.0 m from the pose
-    # graph's solution were right (ATE 0.20 -> 0.16 m); rejected ones elsewhere moved keyframes 6-12 m.
+    # Wide enough for right results that move a mid-loop keyframe ~1 m, narrow enough for wrong ones that move
+    # keyframes 6-12 m (the 1 km loop of town 21, docs/results/defaults.md).
     global_ba_max_move_m: float = 2.0
     global_ba_move_fraction: float = 1.0
     # A verified loop must agree with the odometry up to this drift: the correction it implies for the query keyframe
@@ -260,7 +256,7 @@ ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
     "no_scale_correction": {"backend": {"registration": False, "scale_correction": False}},
     "points_only": {"tracking": {"points_only": True}},
     # Not one of the paper's: the frame-to-frame tracker alone (no back end, no loop closing), the baseline the
-    # back-end issue (8) asks the full system to beat.
+    # full system must beat.
     "tracker_only": {"backend": {"enabled": False}, "loop": {"enabled": False}},
     # Not one of the paper's: the scale correction optimisation alone switched off, the registration factors kept in
     # the bundle adjustment (which then fixes the scale itself; see plvo/backend/worker.py).
