@@ -5,7 +5,7 @@ In the deployed mode the tracker waits, when it makes a keyframe, for the back e
 (plvo.data.prefetch, `System.prepare`, with the line thread they use) and the loop closer (whose results are applied
 20 frames later) run at LOOKAHEAD_NICENESS, so that on two cores they take what the back end and the tracker leave.
 Measured on KITTI 04 (6 runs each way, alternating, KISS-ICP after each): 0.75 -> 0.82 of KISS-ICP's frames a second
-(medians). Since the back-end lag became 6 frames (issue 15, tenth session) the tracker rarely waits for the back
+(medians). With the back-end lag of 6 frames (`backend.max_lag_frames`) the tracker rarely waits for the back
 end, but for the features of the frames read ahead; the look-ahead at nice 0 was no faster (plvo-viz on 04, 5
 alternating runs each: 10.3 against 10.8 frames a second at nice 10). In the deployed mode the features are
 extracted in a process of their own (plvo.features.worker), also at LOOKAHEAD_NICENESS: at nice 0 it was no faster

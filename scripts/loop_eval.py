@@ -1,4 +1,4 @@
-"""Loop closure at sequence scale (issue 9): detection precision and recall, and what each correction step buys.
+"""Loop closure at sequence scale: detection precision and recall, and what each correction step buys.
 
 For every sequence it runs the System three times (back end inline, deterministic order): without loop closing,
 with the pose graph only (loop.global_ba = false), and with pose graph + global bundle adjustment (the default).

@@ -227,7 +227,7 @@ def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
               f"{page_ms:.0f} ms (median of {len(in_page)}, max {max(in_page):.0f} ms), its image "
               f"{np.median(image):.0f} ms; through playwright {trip_ms:.0f} ms")
         assert server_ms < 100, server_s
-        # Not the 100 ms: in headless Chromium every render frame is drawn in software (SwiftShader) and read
+        # Not 100 ms as on a GPU: in headless Chromium every render frame is drawn in software (SwiftShader) and read
         # back for the compositor, ~25 ms for an empty scene at this viewport and ~35 with this one, and a frame change
         # waits for ~4 of them (the key event behind one, the websocket reply behind one or two, the one that draws
         # it); with the canvas hidden the same steps took ~65 ms, playwright's round trip included. ~240 ms here on a

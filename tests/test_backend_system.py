@@ -1,4 +1,4 @@
-"""The back end inside the whole System (issue 8): it must make the trajectory better, and a bad registration must
+"""The back end inside the whole System: it must make the trajectory better, and a bad registration must
 get a small zeta and leave the trajectory where a good one puts it.
 
 One short synthetic town sequence (seed 0, 10 m/s) is run five times with inline workers (deterministic):
@@ -119,7 +119,7 @@ def _rel_err(gt: np.ndarray, est: np.ndarray, stride: int) -> float:
 def test_back_end_beats_odometry_alone(runs):
     """Relative-pose errors 3, 10 and 20 frames (3, 10, 20 m) apart. Measured: odometry 19.6 / 38.6 / 65.5 mm, full
     14.9 / 23.7 / 40.1 mm (13.8 / 21.2 / 36.6 with a 95x looser relative-rotation sigma, which drifts over a kilometre;
-    16.4 / 22.4 / 39.7 before the map kept its poses rigid, issue 8); the registration
+    16.4 / 22.4 / 39.7 without projecting the map's keyframe poses onto SE(3)); the registration
     fixes the drift the tracker accumulates over keyframes."""
     gt = runs["gt"]
     for stride, margin in ((3, 1.0), (10, 0.75), (20, 0.75)):

@@ -1,4 +1,4 @@
-"""Any KITTI camera (issue 18): a colour-only, SemanticKITTI-style sequence (image_2, poses.txt inside the
+"""Any KITTI camera: a colour-only, SemanticKITTI-style sequence (image_2, poses.txt inside the
 sequence) runs through --camera 2; the pipeline gets grey, the viewers the colour image; a bag of colour images
 reads back the same frames; the no-root error says what to download and what runs without it."""
 

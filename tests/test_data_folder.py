@@ -1,4 +1,4 @@
-"""Plain folder layout (issue 18): images/ + scans/ (.bin, .pcd, .ply) + calib.yaml + times.txt + poses.txt (KITTI
+"""Plain folder layout: images/ + scans/ (.bin, .pcd, .ply) + calib.yaml + times.txt + poses.txt (KITTI
 or TUM) read back the frames and ground truth of the KITTI layout they were made from; distorted images are
 rectified; bad folders get one line."""
 

@@ -1,4 +1,4 @@
-"""ROS message contents -> plvo arrays (issue 18): image encodings, PointCloud2 layouts, CameraInfo and TF."""
+"""ROS message contents -> plvo arrays: image encodings, PointCloud2 layouts, CameraInfo and TF."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""ROS 1 / ROS 2 bags (issue 18): bags written with rosbags' writers from a synthetic town sequence and from the
+"""ROS 1 / ROS 2 bags: bags written with rosbags' writers from a synthetic town sequence and from the
 real 04 frames read back equal to the KITTI layout they came from; a short pipeline run on a bag gives the KITTI
 run's trajectory; bad bags get one line naming the bag, topic or field.
 """

@@ -1,4 +1,4 @@
-"""Features extracted ahead of tracking (issue 15): the prefetching thread runs `System.prepare` on the next frames
+"""Features extracted ahead of tracking: the prefetching thread runs `System.prepare` on the next frames
 while the tracker works on the current one or waits for a worker; the trajectory must not change."""
 
 from __future__ import annotations

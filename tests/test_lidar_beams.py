@@ -1,4 +1,4 @@
-"""Sparser lidars (issue 18): HDL-64E scans resampled to 32 / 16 beams by elevation ring, and depth priors that
+"""Sparser lidars: HDL-64E scans resampled to 32 / 16 beams by elevation ring, and depth priors that
 still get made on them because the patches follow the ring spacing."""
 
 from __future__ import annotations

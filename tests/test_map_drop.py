@@ -1,4 +1,4 @@
-"""The map's drop of unreachable landmarks (issue 16) changes nothing a run computes: same trajectory, fewer rows."""
+"""The map's drop of unreachable landmarks changes nothing a run computes: same trajectory, fewer rows."""
 
 from __future__ import annotations
 

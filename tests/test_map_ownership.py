@@ -1,5 +1,5 @@
 """One owner of the map: workers return typed corrections, only the map writes poses, and a run's result does not
-depend on the workers' timing (issue 15)."""
+depend on the workers' timing."""
 
 from __future__ import annotations
 

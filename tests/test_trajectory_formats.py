@@ -1,4 +1,4 @@
-"""Trajectories in KITTI and TUM formats (issue 18): plvo-viz --format writes either, TUM with the data's own
+"""Trajectories in KITTI and TUM formats: plvo-viz --format writes either, TUM with the data's own
 timestamps, and evo reads both back."""
 
 from __future__ import annotations

@@ -316,11 +316,11 @@ _LINE_ORIGIN_OFFSET_M = 10.0
 # the landmarks, which are most variables, ~1e10 at the poses); the floor of 1e-2 of the median diagonal goes there
 # at once.
 # After an accepted step the damping follows the step's gain ratio rho (actual / predicted decrease), Nielsen's rule
-# as in g2o and Ceres: lam *= max(1/3, 1 - (2 rho - 1)^3). A fixed /10 (before the twelfth session) overshot: on
-# the seq-04 windows every other step after it was rejected, and each rejection costs a solve and an evaluation.
-# The LM stops when an accepted step lowers the cost by less than _MIN_REL_DROP of it (1e-6 before): the last of
-# the 5 iterations moved those windows' poses by a millimetre at most. Together, on the 32 windows of a seq-04 run:
-# 285 solves instead of 369, 35 % less time (issue 15).
+# as in g2o and Ceres: lam *= max(1/3, 1 - (2 rho - 1)^3). A fixed /10 overshoots: on the seq-04 windows every
+# other step after it was rejected, and each rejection costs a solve and an evaluation.
+# The LM stops when an accepted step lowers the cost by less than _MIN_REL_DROP of it: at 1e-6 the last of the 5
+# iterations moved those windows' poses by a millimetre at most. Together, on the 32 windows of a seq-04 run: 285
+# solves instead of 369, 35 % less time (docs/results/speed.md).
 _LAM0, _LAM_UP, _LAM_FLOOR_REL = 1e-5, 100.0, 1e-2
 _MIN_REL_DROP = 1e-4
 

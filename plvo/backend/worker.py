@@ -12,11 +12,11 @@ refined landmarks, the new registration edge) the System applies at a fixed fram
 only the previous keyframe's prepared scan, the next registration's target, so it can run inline, in a thread or in
 a worker process (plvo.workers) and give the same result.
 
-Why the back end made seq 04 worse before issue 8's fixes, and what changed: the tracker's keyframe-to-keyframe
-translation is ~1 % too long (depth-prior scale), NDT's is right to 0.1 %; but with the old 0.05 m / 0.05 rad base
-sigma the relative-pose factor weighed ~1e-3 of the 0.1 px reprojection factors, so the BA kept the visual scale
-and only added noise (1.22 / 1.12 / 1.04 % vs odometry's 1.05 / 0.90 / 0.84 %). With 0.5 mm / 0.5 mrad the BA
-follows the registration's scale (0.73 / 0.57 / 0.40 %; KISS-ICP 0.74 / 0.63 / 0.55 %).
+Why the relative-pose factor's base sigma is so small: the tracker's keyframe-to-keyframe translation is ~1 % too
+long (depth-prior scale), NDT's is right to 0.1 %; with a 0.05 m / 0.05 rad base sigma the relative-pose factor
+weighs ~1e-3 of the 0.1 px reprojection factors, so the BA keeps the visual scale and only adds noise (1.22 / 1.12 /
+1.04 % on seq 04 against odometry's 1.05 / 0.90 / 0.84 %). With 0.5 mm it follows the registration's scale (0.73 /
+0.57 / 0.40 %; KISS-ICP 0.74 / 0.63 / 0.55 %; docs/results/defaults.md).
 
 The scale correction runs before the bundle adjustment, as in the paper, and gives it its start; weighing the same
 registration factor, the adjustment would fix the scale itself (ablation no_scale_step). Without the registration

@@ -3,8 +3,8 @@
 KITTI's scans have no ring field, so a return's ring is the HDL-64E beam whose nominal elevation is nearest to the
 return's elevation angle (after the lidar's elevation error is taken out, see plvo.lidar.scan). Keeping every
 2nd ring gives a 32-beam scan with HDL-32E-like spacing in the upper block, every 4th a 16-beam (VLP-16-like,
-about 1.3 to 2 degrees apart). A start for the sparse-lidar issue; real VLP-16 / HDL-32 / OS-128 models belong in
-the synthetic town's generator.
+about 1.3 to 2 degrees apart). This thins real scans; sequences with VLP-16, HDL-32 or OS-128 geometry of their own
+are generated as twins (`plvo synth --lidar`, plvo/data/synth/twin/lidars.py).
 """
 
 from __future__ import annotations

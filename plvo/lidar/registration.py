@@ -24,14 +24,14 @@ almost always: the printed formula is <= exp(-2) = 0.135, tends to 0 exactly whe
 drift, which the factor is there to correct) and gives weight near 1 only when e_bar > e_hat, i.e. to a
 registration that made the alignment *worse* than the tracker's pose. The default, `zeta_formula = "inverse"`,
 exp(-2 (e_bar / e_hat)^2), swaps the two: exp(-2) when both agree, up to 1 when the registration is much better than
-the tracker, near 0 for a registration worse than the tracker's pose. Measured (issue 8): a registration result
+the tracker, near 0 for a registration worse than the tracker's pose. Measured (docs/results/defaults.md): a result
 moved 0.5 m / 1 deg from the right one gets 0.010 on sequence 04 frames 10/13 (paper formula: > 0.3) and ~0 on
 the synthetic town; in the whole system the paper formula let such a corrupted registration pull the synthetic
 trajectory 0.63 m, the inverse one 1 cm (tests/test_backend_system.py). On seq 04 the two formulas give 0.74 /
 0.58 / 0.42 % (paper) and 0.70 / 0.54 / 0.39 % (inverse) short-segment errors at 10 / 20 / 40 m (back end
 with a 1 mm relative-pose sigma, 0.5 m voxels).
 The dynamic range is limited by e's floor (~0.09 m on seq 04 at the right pose: plane noise, vegetation), so a
-corruption of 0.3 m gives only exp(-2 * 1.35^2) = 0.026; see e's discrimination figures in the issue-8 report.
+corruption of 0.3 m gives only exp(-2 * 1.35^2) = 0.026.
 
 KITTI's scans: every return of the HDL-64E recordings sits about 0.2 deg too low in elevation (IMLS-SLAM found it;
 CT-ICP and KISS-ICP raise every KITTI point by 0.205 deg). Uncorrected, registration between keyframes on sequence
