@@ -17,7 +17,6 @@ import numpy as np
 EDGE_ODOMETRY = 0  # consecutive keyframes: VO relative pose / lidar registration
 EDGE_COVISIBILITY = 1  # keyframes sharing landmarks in the local window
 EDGE_LOOP = 2  # accepted loop closure
-EDGE_KINDS = {EDGE_ODOMETRY: "odometry", EDGE_COVISIBILITY: "covisibility", EDGE_LOOP: "loop"}
 
 
 def _empty(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:

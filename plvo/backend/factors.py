@@ -161,11 +161,6 @@ def line_residuals(
     return np.concatenate(res), J_pose, np.concatenate(J_line, axis=0)
 
 
-def line_sigmas(obs: LineObservations, sigma_line: float) -> np.ndarray:
-    """(D,) standard deviations of the rows of `line_residuals` (the paper's single Sigma^L for all rows)."""
-    return np.full(obs.dim, float(sigma_line))
-
-
 def make_line_factor(
     K: np.ndarray,
     pose_keys: list[int],

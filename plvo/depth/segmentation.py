@@ -72,11 +72,6 @@ def fit_planes_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, w: np.ndarray):
     return n, d, np.maximum(eig, 0.0), c
 
 
-def sym3_eig_smallest(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Q,3,3) symmetric -> eigenvalues ascending (Q,3) and a unit eigenvector of the smallest (Q,3)."""
-    return sym3_smallest(A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], A[:, 0, 1], A[:, 0, 2], A[:, 1, 2])
-
-
 def sym3_smallest(a00, a11, a22, a01, a02, a12) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric 3x3 matrices by their six (Q,) entries -> eigenvalues ascending (Q,3), unit eigenvector of the
     smallest (Q,3).

@@ -98,13 +98,6 @@ def closest_point_to_origin(L: np.ndarray) -> np.ndarray:
     return p[0] if single else p
 
 
-def normalize_line(L: np.ndarray) -> np.ndarray:
-    """(6,) or (N,6) -> same: the line scaled to |d| = 1 (sign kept), so that |m| is its distance to the origin."""
-    arr, single = _as_lines(L)
-    out = arr / np.linalg.norm(arr[:, 3:], axis=1, keepdims=True)
-    return out[0] if single else out
-
-
 def plucker_to_orth(L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(6,) -> (U (3,3), W (2,2)) or (N,6) -> ((N,3,3), (N,2,2)): orthonormal representation, same frame as L.
 

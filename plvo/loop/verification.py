@@ -62,9 +62,6 @@ class LoopKeyframe:
         return cls(kf_id, np.asarray(T_world_cam, float), features.keypoints, features.descriptors, pts,
                    features.segments, features.line_descriptors, lines, scan, frame_index)
 
-    def without_scan(self) -> "LoopKeyframe":
-        return dataclasses.replace(self, scan=None)
-
 
 @dataclass(frozen=True)
 class Verification:

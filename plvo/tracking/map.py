@@ -453,24 +453,11 @@ class LandmarkMap:
                 depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][self._pts.rows(ids)[0]],
                 version=self.version)
 
-    def landmarks_first_seen_after(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """Ids of the live point and line landmarks created by keyframes newer than kf_id."""
-        with self.lock:
-            pts = self._pts["id"][self._pts["alive"] & (self._pts["first_kf"] > kf_id)]
-            lns = self._lines["id"][self._lines["alive"] & (self._lines["first_kf"] > kf_id)]
-            return pts, lns
-
     def point_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Live point landmark ids (P,) and the keyframe that created each (P,)."""
         with self.lock:
             alive = self._pts["alive"]
             return self._pts["id"][alive], self._pts["first_kf"][alive]
-
-    def line_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Live line landmark ids (L,) and the keyframe that created each (L,)."""
-        with self.lock:
-            alive = self._lines["alive"]
-            return self._lines["id"][alive], self._lines["first_kf"][alive]
 
     def snapshot(self) -> MapSnapshot:
         """A frozen, consistent copy of the live landmarks and all keyframe poses."""

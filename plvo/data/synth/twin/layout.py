@@ -109,7 +109,6 @@ class Layout:
         # take the ground's height, never give it (they may cross a road that runs higher or lower).
         self._height_tree = cKDTree(hpts[:, :2])
         self._height_z = hpts[:, 2]
-        self.path_xyz = pts
         self.lo = self.xy.min(axis=0)
         self.hi = self.xy.max(axis=0)
 
