@@ -17,6 +17,7 @@ import json
 import logging
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -27,6 +28,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from plvo.depth.extract import DepthDebug
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
@@ -278,8 +280,8 @@ class RerunRecorder:
 
     def on_stage(self, frame_index: int, result: Any) -> None:
         self._drain_warnings()
-        # By class name along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult).
-        handler = next((_HANDLERS[c.__name__] for c in type(result).__mro__ if c.__name__ in _HANDLERS), None)
+        # Along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult).
+        handler = next((_HANDLERS[c] for c in type(result).__mro__ if c in _HANDLERS), None)
         if handler is None:
             log.debug("no Rerun handler for %s", type(result).__name__)
             return
@@ -542,7 +544,7 @@ class RerunRecorder:
             self._log(E["depth_points"], rr.Points3D(pts.astype(np.float32), colors=[GREEN],
                                                         radii=rr.Radius.ui_points(3)))
 
-    def depth_debug(self, dbg: Any) -> None:
+    def depth_debug(self, dbg: DepthDebug) -> None:
         """plvo.depth.extract.DepthDebug: projected scan, searched patches, fitted planes (camera frame, pixels)."""
         self._overlay_pending = False
         self._log_overlay(np.asarray(dbg.scan_uv), np.asarray(dbg.scan_depth))
@@ -685,16 +687,17 @@ class RerunRecorder:
 
 HASH_HEX = 24  # sha256 prefix kept a file (96 bits): 2 x 4541 full hashes would be 0.6 MB of a 25 MB budget
 
-_HANDLERS = {
-    "FeatureSet": RerunRecorder.features,
-    "FeatureMatches": RerunRecorder.matches,
-    "DepthPriors": RerunRecorder.depth,
-    "DepthDebug": RerunRecorder.depth_debug,
-    "KeyframeResult": RerunRecorder.keyframe,
-    "TrackingResult": RerunRecorder.tracking,
-    "GraphResult": RerunRecorder.graph,
-    "MapResult": RerunRecorder.map,
-    "LoopResult": RerunRecorder.loop,
-    "TimingResult": RerunRecorder.timing,
-    "MetricsResult": RerunRecorder.metrics,
+# result type -> RerunRecorder handler
+_HANDLERS: dict[type, Callable[[RerunRecorder, Any], None]] = {
+    FeatureSet: RerunRecorder.features,
+    FeatureMatches: RerunRecorder.matches,
+    DepthPriors: RerunRecorder.depth,
+    DepthDebug: RerunRecorder.depth_debug,
+    KeyframeResult: RerunRecorder.keyframe,
+    TrackingResult: RerunRecorder.tracking,
+    GraphResult: RerunRecorder.graph,
+    MapResult: RerunRecorder.map,
+    LoopResult: RerunRecorder.loop,
+    TimingResult: RerunRecorder.timing,
+    MetricsResult: RerunRecorder.metrics,
 }

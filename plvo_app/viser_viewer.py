@@ -21,6 +21,7 @@ import viser
 import viser.transforms as vtf
 
 from plvo.recording import RunInfo
+from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, TimingResult, TrackingResult
 from plvo.types import Frame
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
                                    load_rrd, simplify_polyline, thin, zeta_colors)
@@ -383,36 +384,41 @@ class ViserRecorder:
         self._put_heavy("image", frame.index, _jpeg_small(shown, 2 * self.viewer.limits.image_width))
 
     def on_stage(self, frame_index: int, result: Any) -> None:
-        known = ("TrackingResult", "KeyframeResult", "MapResult", "GraphResult", "LoopResult", "TimingResult")
         # along the MRO: a stage may hand a richer subclass (the tracker's FrontendResult)
-        name = next((c.__name__ for c in type(result).__mro__ if c.__name__ in known), "")
-        s = self.store
-        if name == "TrackingResult":
-            self._pose = np.asarray(result.T_world_cam, float)
-            s.put("pose", frame_index, self._pose)
-            self._trail.on_tracking(frame_index, self._pose)
-            if not result.ok:
-                s.put("log", frame_index, result.message or "tracking lost")
-        elif name == "KeyframeResult":
-            self._keyframe(frame_index, result)
-        elif name == "MapResult":
-            self._put_heavy("map_points", frame_index, np.asarray(result.points, np.float32))
-            self._put_heavy("map_lines", frame_index, np.asarray(result.lines, np.float32))
-        elif name == "GraphResult":
-            poses = np.asarray(result.T_world_cam, float)
-            self._trail.on_graph(result.keyframe_ids, poses)
-            self._put_estimate(frame_index)
-            if len(result.edges):
-                s.put("graph", frame_index, (poses[:, :3, 3][np.asarray(result.edges)].astype(np.float32),
-                                             zeta_colors(result.zeta, result.edge_kind)))
-        elif name == "LoopResult" and result.accepted:
-            kf = self._trail.kf_pose
-            if result.query_keyframe in kf and result.match_keyframe in kf:
-                self._loops.append(np.array([kf[result.query_keyframe][:3, 3], kf[result.match_keyframe][:3, 3]],
-                                            np.float32))
-                s.put("loops", frame_index, np.array(self._loops))
-        elif name == "TimingResult":  # the end of a step: the frame is complete, show it
-            self._frame_done(frame_index)
+        handler = next((_HANDLERS[c] for c in type(result).__mro__ if c in _HANDLERS), None)
+        if handler is not None:
+            handler(self, frame_index, result)
+
+    def _tracking(self, frame_index: int, result: TrackingResult) -> None:
+        self._pose = np.asarray(result.T_world_cam, float)
+        self.store.put("pose", frame_index, self._pose)
+        self._trail.on_tracking(frame_index, self._pose)
+        if not result.ok:
+            self.store.put("log", frame_index, result.message or "tracking lost")
+
+    def _map(self, frame_index: int, result: MapResult) -> None:
+        self._put_heavy("map_points", frame_index, np.asarray(result.points, np.float32))
+        self._put_heavy("map_lines", frame_index, np.asarray(result.lines, np.float32))
+
+    def _graph(self, frame_index: int, result: GraphResult) -> None:
+        poses = np.asarray(result.T_world_cam, float)
+        self._trail.on_graph(result.keyframe_ids, poses)
+        self._put_estimate(frame_index)
+        if len(result.edges):
+            self.store.put("graph", frame_index, (poses[:, :3, 3][np.asarray(result.edges)].astype(np.float32),
+                                                  zeta_colors(result.zeta, result.edge_kind)))
+
+    def _loop(self, frame_index: int, result: LoopResult) -> None:
+        if not result.accepted:
+            return
+        kf = self._trail.kf_pose
+        if result.query_keyframe in kf and result.match_keyframe in kf:
+            self._loops.append(np.array([kf[result.query_keyframe][:3, 3], kf[result.match_keyframe][:3, 3]],
+                                        np.float32))
+            self.store.put("loops", frame_index, np.array(self._loops))
+
+    def _timing(self, frame_index: int, result: TimingResult) -> None:
+        self._frame_done(frame_index)  # the end of a step: the frame is complete, show it
 
     def _frame_done(self, frame_index: int) -> None:
         self.store.add_frame(frame_index)
@@ -427,7 +433,7 @@ class ViserRecorder:
         if self._trail.frames:
             s.put("est", frame_index, TrailView(self._trail, len(self._trail.frames)))
 
-    def _keyframe(self, frame_index: int, kf: Any) -> None:
+    def _keyframe(self, frame_index: int, kf: KeyframeResult) -> None:
         pose = np.asarray(kf.T_world_cam if kf.T_world_cam is not None else self._pose, float)
         frame = self._frame
         self.store.put("log", frame_index, f"keyframe {kf.keyframe_id}: {kf.reason}")
@@ -443,6 +449,17 @@ class ViserRecorder:
     def close(self) -> None:
         self.viewer.refresh()
 
+
+
+# result type -> ViserRecorder handler; the results the viewer does not show have none
+_HANDLERS = {
+    TrackingResult: ViserRecorder._tracking,
+    KeyframeResult: ViserRecorder._keyframe,
+    MapResult: ViserRecorder._map,
+    GraphResult: ViserRecorder._graph,
+    LoopResult: ViserRecorder._loop,
+    TimingResult: ViserRecorder._timing,
+}
 
 class TrailView:
     """The first n positions of an EstimateTrail (frames, or keyframes by id) as the trail stands when drawn: a
