@@ -176,6 +176,11 @@ class BackendConfig:
     # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker; the features are
     # then extracted in a process of their own too, plvo.features.worker) or "thread".
     executor: str = "process"
+    # How long the run waits for a worker (back end, loop closer, features) that sends nothing while its result is
+    # due, before it fails the run naming the worker (a stopped or deadlocked process; a dead one is seen at once).
+    # The slowest single job measured, a global bundle adjustment near the end of the 4541-frame soak, took 5.3 s
+    # (docs/results/soak): 300 s leaves a wide margin for a slower or busier machine.
+    worker_timeout_s: float = 300.0
     # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
     # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Longer
     # than the keyframe spacing, so that the next keyframe's frame is tracked while the back end works instead of

@@ -85,6 +85,7 @@ RANGES: dict[str, Range] = {
     "depth.reference_ring_spacing_px": POSITIVE, "depth.adapt_min_ratio": Range(1.0),
     "depth.adapt_max_ratio": Range(1.0),
     "backend.iterations": COUNT, "backend.outlier_px": NON_NEGATIVE, "backend.max_lag_frames": COUNT0,
+    "backend.worker_timeout_s": POSITIVE,
     "loop.min_keyframe_gap": COUNT0, "loop.min_score": NON_NEGATIVE, "loop.consistency": COUNT,
     "loop.min_inliers": Range(4), "loop.min_neighbour_score": NON_NEGATIVE, "loop.neighbours": COUNT,
     "loop.island_gap": COUNT0, "loop.max_verify": COUNT, "loop.loop_cooldown": COUNT0, "loop.ratio": RATIO,

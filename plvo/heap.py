@@ -26,7 +26,8 @@ TOP_PAD_BYTES = 16 << 20
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3  # malloc.h
 
 
-def _libc():
+def c_library():
+    """The C library (glibc on Linux), or None elsewhere."""
     if not sys.platform.startswith("linux"):
         return None
     try:
@@ -39,18 +40,18 @@ def keep_freed_memory() -> bool:
     """Have glibc keep freed memory for reuse instead of unmapping it (see the module doc); True when it took.
     For the processes whose per-frame work allocates the same large arrays again and again: plvo's worker processes
     and the application's tracking process. A library caller's process is left as it is."""
-    libc = _libc()
-    if libc is None or not hasattr(libc, "mallopt"):
+    c = c_library()
+    if c is None or not hasattr(c, "mallopt"):
         return False
-    return all(libc.mallopt(param, value) == 1 for param, value in (
+    return all(c.mallopt(param, value) == 1 for param, value in (
         (_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES), (_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES),
         (_M_TOP_PAD, TOP_PAD_BYTES)))
 
 
 def release_free_memory() -> bool:
     """Return the C heap's free pages to the OS (glibc's malloc_trim); True when it ran."""
-    libc = _libc()
-    if libc is None or not hasattr(libc, "malloc_trim"):  # not glibc
+    c = c_library()
+    if c is None or not hasattr(c, "malloc_trim"):  # not glibc
         return False
-    libc.malloc_trim(0)
+    c.malloc_trim(0)
     return True

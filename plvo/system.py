@@ -151,10 +151,12 @@ class System:
         deployed mode their features are extracted in the features process, one more frame ahead."""
         from plvo.data.prefetch import prefetched
 
+        # A frame's wait includes its features' (bounded by the workers' timeout): the read gets a minute more
+        timeout_s = self.config.backend.worker_timeout_s + 60.0
         if self._features is None:
-            return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS)
+            return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS, timeout_s=timeout_s)
         return prefetched(dataset, prepare=self._start_features, finish=self._take_features,
-                          niceness=LOOKAHEAD_NICENESS)
+                          niceness=LOOKAHEAD_NICENESS, timeout_s=timeout_s)
 
     def _start_features(self, frame: Frame) -> bool:
         """Queue the frame's image in the features process -> whether it was (not when it has its features)."""
@@ -211,18 +213,19 @@ class System:
         b = self.config.backend
         mode = b.executor if b.concurrent else "inline"
         if b.enabled:
-            self._backend = OrderedWorker("back end", BackendCore, (calib, self.config), mode)
+            self._backend = OrderedWorker("back end", BackendCore, (calib, self.config), mode,
+                                          timeout_s=b.worker_timeout_s)
         if self.config.loop.enabled:
             from plvo.loop.worker import LoopCore
 
             self._loop = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode,
-                                       niceness=LOOKAHEAD_NICENESS)
+                                       niceness=LOOKAHEAD_NICENESS, timeout_s=b.worker_timeout_s)
         if b.concurrent and mode == "process":
             # Off the tracker's process: there ORB and LSD shared the GIL with the tracker (plvo.features.worker)
             from plvo.features.worker import FeaturesCore
 
             self._features = OrderedWorker("features", FeaturesCore, self._frontend.feature_settings, mode,
-                                           niceness=LOOKAHEAD_NICENESS)
+                                           niceness=LOOKAHEAD_NICENESS, timeout_s=b.worker_timeout_s)
 
     @property
     def _lags(self) -> tuple[int, int, int]:
@@ -243,6 +246,8 @@ class System:
             self._build(frame.calib)
         self._frame_now = frame.index
         self._clock = _Clock()
+        for worker in self._workers:  # a worker process that died fails the run here, not frames later
+            worker.check_alive(f"frame {frame.index}")
         keyframe = None
         with self._clock.stage("total"):  # wall time of the step, recorders included ("recording" is their share)
             with self._clock.stage("apply"):  # waiting for and applying the results due at this frame

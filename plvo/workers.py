@@ -10,12 +10,19 @@ Where it runs (`mode`):
 - "inline": at `submit`, in the caller's thread (what `backend.concurrent = false` gives);
 - "thread": a thread of this process. It shares the GIL with the tracker: the numpy, scipy and open3d calls release
   it only in parts, so on two cores the tracker slows while the back end runs;
-- "process": a spawned worker process, jobs and outputs pickled through multiprocessing queues (whose feeder
-  threads do the pickling off the caller's path). No GIL is shared; each job ships its window (a few hundred kB)
-  and each keyframe's scan (about 2 MB) once. Log records of the worker are sent back with each output and logged
-  again in this process when the output is taken, so they reach the recorders in a fixed order.
+- "process": a spawned worker process with a pipe each way (`_ProcessLink`). No GIL is shared; each job ships its
+  window (a few hundred kB) and each keyframe's scan (about 2 MB) once. Log records of the worker are sent back with
+  each output and logged again in this process when the output is taken, so they reach the recorders in a fixed
+  order.
 
-A failure in the core comes back as `plvo.errors.WorkerError` from `take`, one line naming the worker and the job.
+Failures come back from `take` as `plvo.errors.WorkerError`, one line naming the worker and the job (keyframe and
+frame), and the worker is then failed for good:
+- the core raised: its exception's first line;
+- the worker process ended (killed by a signal such as the OOM killer's SIGKILL, a segfault in a native library, an
+  exit) at start-up, between jobs or while sending a result: the pipe from the worker has no other writer, so its
+  end arrives as end-of-file however much of a message was sent; the process is then reaped;
+- the worker sent nothing for `timeout_s` while a result was due (stopped, deadlocked, livelocked): it is killed.
+No multiprocessing queue, lock or shared memory is used, so nothing depends on multiprocessing's resource tracker.
 """
 
 from __future__ import annotations
@@ -25,27 +32,50 @@ import logging
 import multiprocessing
 import os
 import queue
+import signal
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
+from multiprocessing.connection import Connection
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from plvo.errors import WorkerError
-from plvo.heap import keep_freed_memory
+from plvo.heap import c_library, keep_freed_memory
 from plvo.priority import lower_priority
 
 log = logging.getLogger(__name__)
 
 MODES = ("inline", "thread", "process")
+DEFAULT_TIMEOUT_S = 300.0  # config.BackendConfig.worker_timeout_s's default (the reason is given there)
 _STOP = None
 _READY = "ready"  # a worker process's first message: its core is made (its imports done)
+_PR_SET_PDEATHSIG, _PR_SET_NAME = 1, 15  # linux/prctl.h
+_POLL_S = 0.5  # how often a wait looks at the clock and at the worker's liveness
+# A worker process's start is its imports (gtsam, open3d, OpenCV: 1-2 s on an idle 2-core machine, several times
+# that on a loaded one): it is given at least this long, whatever shorter bound is set for the results
+START_TIMEOUT_S = 120.0
 
 
 def _describe(job: Any) -> str:
+    """How a failure names a job: "keyframe 7 at frame 21", "frame 5 (FeaturesJob)", or the job's type."""
     kf, frame = getattr(job, "kf_id", None), getattr(job, "frame_index", None)
-    parts = [f"keyframe {kf}" if kf is not None else type(job).__name__, f"frame {frame}" if frame is not None else ""]
-    return " at ".join(p for p in parts if p)
+    if kf is None:
+        return f"frame {frame} ({type(job).__name__})" if frame is not None else type(job).__name__
+    return f"keyframe {kf} at frame {frame}" if frame is not None else f"keyframe {kf}"
+
+
+def _how_it_ended(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "ended"
+    if exitcode < 0:
+        try:
+            return f"was killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"was killed by signal {-exitcode}"
+    return f"ended (exit code {exitcode})"
 
 
 class _Failure:
@@ -55,6 +85,13 @@ class _Failure:
         self.where = _describe(job)
         self.message = f"{type(exc).__name__}: {exc}".splitlines()[0]
         self.trace = traceback.format_exc()
+
+
+class _Ended:
+    """What the reading thread hands over when the worker's pipe ends; `partial`: in the middle of a message."""
+
+    def __init__(self, partial: bool):
+        self.partial = partial
 
 
 class _Capture(logging.Handler):
@@ -78,14 +115,25 @@ def _open3d_single_threaded() -> None:
         o3d.utility.set_max_threads(1)
 
 
-def _serve(jobs, outputs, factory: Callable, args: tuple, level: int, niceness: int = 0) -> None:
-    """A worker process's main loop."""
-    if sys.platform.startswith("linux"):  # end with the parent (a killed run leaves no worker behind)
-        import ctypes
-        import signal
+def _as_child(name: str) -> None:
+    """A worker process ends with its parent (a killed run leaves no worker behind), leaves Ctrl-C to the parent,
+    and is named after its core, so `ps`, `top` and a test can tell the workers apart."""
+    c = c_library()
+    if c is None:
+        return
+    c.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    c.prctl(_PR_SET_NAME, f"plvo-{name.replace(' ', '')}"[:15].encode())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+
+def _send(conn: Connection, obj: Any) -> None:
+    conn.send_bytes(ForkingPickler.dumps(obj))
+
+
+def _serve(jobs: Connection, outputs: Connection, name: str, factory: Callable, args: tuple, level: int,
+           niceness: int = 0) -> None:
+    """A worker process's main loop: jobs in from one pipe, (output, log records) out through the other."""
+    _as_child(name)
     keep_freed_memory()  # a keyframe's scan arrays reused, not faulted in again each time (plvo.heap)
     capture = _Capture()
     root = logging.getLogger()
@@ -94,21 +142,23 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int, niceness: 
     try:
         core = factory(*args)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
-        outputs.put((_Failure(None, exc), capture.records))
+        _send(outputs, (_Failure(None, exc), capture.records))
         return
     lower_priority(niceness)  # after the imports, which the caller waits for; threads made later inherit it
     _open3d_single_threaded()
-    outputs.put((_READY, capture.records))
+    _send(outputs, (_READY, capture.records))
     capture.records = []
     while True:
-        job = jobs.get()
+        try:
+            job = jobs.recv()
+        except EOFError:  # the parent closed its end (or ended): nobody wants the outputs
+            job = _STOP
         if job is _STOP:
-            # Every output is in the pipe once the queue's feeder thread is joined; then exit at once: the
-            # interpreter's teardown of open3d, gtsam, OpenCV and the rest took ~0.5 s a worker, which every run
-            # (and plvo-viz's user) waited for at its end. Nothing else is left: the logs go back with the outputs,
-            # and on Linux the loop closer's keyframe file was unlinked when it was opened.
+            # Every output was sent (the sends are synchronous); exit at once: the interpreter's teardown of
+            # open3d, gtsam, OpenCV and the rest took ~0.5 s a worker, which every run (and plvo-viz's user) waited
+            # for at its end. Nothing else is left: the logs go back with the outputs, and on Linux the loop
+            # closer's keyframe file was unlinked when it was opened.
             outputs.close()
-            outputs.join_thread()
             if not sys.platform.startswith("linux"):
                 return
             sys.stdout.flush()
@@ -119,47 +169,115 @@ def _serve(jobs, outputs, factory: Callable, args: tuple, level: int, niceness: 
         except BaseException as exc:  # noqa: BLE001 - reported to the parent
             out = _Failure(job, exc)
         records, capture.records = capture.records, []
-        outputs.put((out, records))
+        _send(outputs, (out, records))
+
+
+class _ProcessLink:
+    """The parent's side of a worker process: a pipe each way, of which the parent keeps one end only, a thread
+    that pickles and sends the jobs (off the caller's path; a job to a stopped worker blocks that thread, not the
+    caller) and a thread that reads the outputs' bytes as they come (so a worker is never blocked sending, and a
+    pipe that ends mid-message is seen as ended). The caller unpickles what it takes."""
+
+    def __init__(self, name: str, factory: Callable, args: tuple, niceness: int):
+        ctx = multiprocessing.get_context("spawn")
+        job_r, job_w = ctx.Pipe(duplex=False)
+        out_r, out_w = ctx.Pipe(duplex=False)
+        level = logging.getLogger("plvo").getEffectiveLevel()
+        self.proc = ctx.Process(target=_serve, name=f"plvo-{name}", daemon=True,
+                                args=(job_r, out_w, name, factory, args, level, niceness))
+        self.proc.start()
+        job_r.close()  # the worker's ends: with them closed here, the worker's death closes the pipes
+        out_w.close()
+        self._jobs, self._outputs = job_w, out_r
+        self._outbox: queue.Queue = queue.Queue()
+        self.inbox: queue.Queue = queue.Queue()
+        self._sender = threading.Thread(target=self._send_loop, name=f"plvo-{name}-send", daemon=True)
+        self._reader = threading.Thread(target=self._read_loop, name=f"plvo-{name}-read", daemon=True)
+        self._sender.start()
+        self._reader.start()
+
+    def put(self, job: Any) -> None:
+        self._outbox.put(job)
+
+    def _send_loop(self) -> None:
+        while True:
+            job = self._outbox.get()
+            try:
+                _send(self._jobs, job)
+            except (OSError, ValueError):  # the worker is gone (its end closed): take() reports how it ended
+                return
+            except Exception as exc:  # noqa: BLE001 - e.g. a job that cannot be pickled: the caller is told
+                self.inbox.put(_Failure(job, exc))
+                return
+            if job is _STOP:
+                return
+
+    def _read_loop(self) -> None:
+        try:
+            while True:
+                self.inbox.put(self._outputs.recv_bytes())
+        except EOFError:
+            self.inbox.put(_Ended(partial=False))
+        except OSError:  # "got end of file during message", or the connection closed by close()
+            self.inbox.put(_Ended(partial=True))
+
+    def ended(self, grace_s: float = 5.0) -> int | None:
+        """Reap the worker process (it has ended or is ending) -> its exit code (None if it did not end)."""
+        self.proc.join(timeout=grace_s)
+        return self.proc.exitcode
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()  # also ends a stopped (SIGSTOP) process
+        self.proc.join(timeout=5)
+
+    def close(self, grace_s: float = 10.0) -> None:
+        """Ask the worker to stop, give it `grace_s`, then kill it; reap it and close the pipes."""
+        if self.proc.is_alive():
+            self._outbox.put(_STOP)
+            self.proc.join(timeout=grace_s)
+        self.kill()
+        for conn in (self._jobs, self._outputs):
+            conn.close()
 
 
 class OrderedWorker:
     """One core, run `mode` (MODES); `submit(job)` in order, `take()` returns the outputs in the same order."""
 
-    def __init__(self, name: str, factory: Callable, args: tuple, mode: str = "inline", niceness: int = 0):
+    def __init__(self, name: str, factory: Callable, args: tuple, mode: str = "inline", niceness: int = 0,
+                 timeout_s: float = DEFAULT_TIMEOUT_S):
         """niceness: the worker process's (`lower_priority`) once its core is made; not applied inline or in a
-        thread, which run in the caller's thread or share its process."""
+        thread, which run in the caller's thread or share its process. timeout_s: how long `take` waits without any
+        message from the worker before the worker is failed and ended (its start: at least START_TIMEOUT_S)."""
         if mode not in MODES:
             raise ValueError(f"worker mode must be one of {MODES}, got {mode!r}")
         self.name = name
         self.mode = mode
+        self.timeout_s = float(timeout_s)
         self._outstanding: collections.deque[Any] = collections.deque()  # jobs submitted, output not taken
         self._done: collections.deque[Any] = collections.deque()  # inline outputs
         self._core = None
         self._thread: threading.Thread | None = None
-        self._proc = None
+        self._link: _ProcessLink | None = None
         self._failed: str = ""
         self._ready = mode != "process"
         if mode == "inline":
             self._core = factory(*args)
         elif mode == "thread":
             self._core = factory(*args)
-            self._jobs: Any = queue.Queue()
-            self._outputs: Any = queue.Queue()
+            self._jobs: queue.Queue = queue.Queue()
+            self._outputs: queue.Queue = queue.Queue()
             self._thread = threading.Thread(target=self._run_thread, name=f"plvo-{name}", daemon=True)
             self._thread.start()
         else:
-            ctx = multiprocessing.get_context("spawn")
-            self._jobs, self._outputs = ctx.Queue(), ctx.Queue()
-            level = logging.getLogger("plvo").getEffectiveLevel()
-            self._proc = ctx.Process(target=_serve, name=f"plvo-{name}", daemon=True,
-                                     args=(self._jobs, self._outputs, factory, args, level, niceness))
-            self._proc.start()
+            self._link = _ProcessLink(name, factory, args, niceness)
+            self._outputs = self._link.inbox
 
     def wait_ready(self) -> None:
         """Wait until the core is made: a worker process has imported its libraries (a second or two of the first
         job's time otherwise) and made its core, or failed to (WorkerError, one line)."""
         while not self._ready:
-            out, records = self._next("its start")
+            out, records = self._next("its start", max(self.timeout_s, START_TIMEOUT_S))
             self._relog(records)
             if isinstance(out, _Failure):
                 raise self._failure(f"the {self.name} failed to start: {out.message}", out.trace)
@@ -171,7 +289,7 @@ class OrderedWorker:
     @property
     def pid(self) -> int | None:
         """The worker process's id (None inline, in a thread, or once closed)."""
-        return self._proc.pid if self._proc is not None else None
+        return self._link.proc.pid if self._link is not None else None
 
     @property
     def pending(self) -> int:
@@ -189,8 +307,23 @@ class OrderedWorker:
                 self._failed = f"the {self.name} failed on {_describe(job)}: {type(exc).__name__}: {exc}"
                 log.debug("%s", traceback.format_exc())
                 raise WorkerError(self._failed.splitlines()[0]) from exc
+        elif self._link is not None:
+            self._link.put(job)
         else:
             self._jobs.put(job)
+
+    def check_alive(self, now: str = "") -> None:
+        """Raise the WorkerError `take` would, at once, when the worker process has ended: the run stops at the frame
+        where it is seen instead of at the frame its next result was due (up to loop.max_lag_frames later).
+        now: where the caller is (e.g. "frame 12"), named when no job is outstanding."""
+        if self._failed:
+            raise WorkerError(self._failed)
+        if self._link is not None and not self._link.proc.is_alive():
+            if self._outstanding:
+                what = _describe(self._outstanding[0])
+            else:
+                what = f"its next job (seen at {now})" if now else "its next job"
+            raise self._ended(what, False)
 
     def take(self) -> Any:
         """The output of the oldest job not yet taken, waiting for it; WorkerError when the core failed."""
@@ -218,19 +351,48 @@ class OrderedWorker:
         for name, level, msg in records:
             logging.getLogger(name).log(level, "%s", msg)
 
-    def _next(self, what: str) -> tuple[Any, list]:
-        """The worker's next message; WorkerError when it ended before `what`."""
+    def _next(self, what: str, bound_s: float | None = None) -> tuple[Any, list]:
+        """The worker's next message; WorkerError when it ended before `what`, or sent nothing for bound_s
+        (default timeout_s)."""
+        bound_s = self.timeout_s if bound_s is None else bound_s
         if self._failed:
             raise WorkerError(self._failed)
+        t0 = time.monotonic()
+        dead_since: float | None = None
         while True:
             try:
-                return self._outputs.get(timeout=1.0)
+                item = self._outputs.get(timeout=_POLL_S)
             except queue.Empty:
-                if self._proc is not None and not self._proc.is_alive():
-                    raise self._failure(f"the {self.name} worker process ended (exit code {self._proc.exitcode}) "
-                                        f"before {what}") from None
+                waited = time.monotonic() - t0
+                if self._link is not None and not self._link.proc.is_alive():
+                    # its pipe's end follows at once, unless a process it made still holds the pipe open
+                    dead_since = dead_since if dead_since is not None else time.monotonic()
+                    if time.monotonic() - dead_since > 2.0:
+                        raise self._ended(what, False) from None
                 if self._thread is not None and not self._thread.is_alive():
                     raise self._failure(f"the {self.name} thread ended before {what}") from None
+                if waited >= bound_s:
+                    raise self._unanswered(what, waited) from None
+                continue
+            if isinstance(item, _Ended):
+                raise self._ended(what, item.partial)
+            if isinstance(item, _Failure):  # the sending thread's: a job that could not be sent
+                raise self._failure(f"the {self.name} worker could not be sent {item.where}: {item.message}")
+            return ForkingPickler.loads(item) if isinstance(item, bytes) else item
+
+    def _ended(self, what: str, partial: bool) -> WorkerError:
+        how = _how_it_ended(self._link.ended())
+        pid = self._link.proc.pid
+        while_ = " while sending its result" if partial else ""
+        return self._failure(f"the {self.name} worker process (pid {pid}) {how}{while_} before {what}")
+
+    def _unanswered(self, what: str, waited: float) -> WorkerError:
+        where = f"worker process (pid {self._link.proc.pid})" if self._link is not None else "thread"
+        err = self._failure(f"the {self.name} {where} sent nothing for {waited:.0f} s while {what} was due "
+                            "(stopped or deadlocked; the bound is backend.worker_timeout_s); ended it")
+        if self._link is not None:
+            self._link.kill()
+        return err
 
     def _run_thread(self) -> None:
         while True:
@@ -248,15 +410,7 @@ class OrderedWorker:
         self._outstanding.clear()
         if self._thread is not None and self._thread.is_alive():
             self._jobs.put(_STOP)
-            self._thread.join(timeout=60)
-        if self._proc is not None:
-            if self._proc.is_alive():
-                self._jobs.put(_STOP)
-                self._proc.join(timeout=10)
-            if self._proc.is_alive():
-                self._proc.kill()
-                self._proc.join(timeout=5)
-            for q in (self._jobs, self._outputs):
-                q.cancel_join_thread()
-                q.close()
-            self._proc = None
+            self._thread.join(timeout=1 if self._failed else 60)  # a hung core's thread cannot be joined
+        if self._link is not None:
+            self._link.close()
+            self._link = None

@@ -33,6 +33,9 @@ STREAM_HEADER = 12
 MESSAGE_HEADER = 16
 END = 0
 WRITE_INTERVAL_S = 0.2  # the batcher hands chunks over every 2 s (plvo_app/rerun_recorder.py); checked 10x as often
+# How long close() waits for the writer thread's last write: a write blocked that long (a hung network disk) fails
+# the run's recording with one line instead of holding the run's end for ever
+CLOSE_TIMEOUT_S = 120.0
 
 
 def message_spans(data: bytes) -> list[tuple[int, int]]:
@@ -105,9 +108,17 @@ class RrdFileSink:
             except RecordingError as exc:
                 self._error = exc
                 return
+            except Exception as exc:  # noqa: BLE001 - e.g. the stream's encoder: the run must hear of it
+                log.debug("the recording's writer thread failed", exc_info=True)
+                self._error = RecordingError(f"{self.path}: writing the recording failed ({type(exc).__name__}: "
+                                             f"{exc}); the {self.written} bytes written before are kept, readable")
+                return
 
     def pump(self) -> None:
         """Once a step, in the caller's thread: raise the writer's first failure (once), so the run stops there."""
+        if self._error is None and not self._writer.is_alive() and not self._stop.is_set():
+            self._error = RecordingError(f"{self.path}: the recording's writer thread ended; the {self.written} "
+                                         "bytes written before are kept, readable")
         if self._error is not None and not self._reported:
             self._reported = True
             raise self._error
@@ -158,7 +169,13 @@ class RrdFileSink:
     def close(self) -> None:
         """Write the rest and close the file. A failure not yet raised by `pump` is raised here, once."""
         self._stop.set()
-        self._writer.join()
+        self._writer.join(timeout=CLOSE_TIMEOUT_S)
+        if self._writer.is_alive():  # its write is blocked: the file cannot be finished from here
+            self._error = self._error or RecordingError(
+                f"{self.path}: a write of the recording did not return within {CLOSE_TIMEOUT_S:.0f} s; the "
+                f"{self.written} bytes written before are kept, readable")
+            self._reported = False
+            self.pump()
         if self._file.closed:
             self.pump()
             return

@@ -227,7 +227,7 @@ def test_a_failure_in_the_features_process_names_its_frame(synth_sequence_factor
     system = System(SystemConfig(), calib=ds.calib)
     done = []
     try:
-        with pytest.raises(WorkerError, match=r"^the features failed on FeaturesJob at frame 4: PlvoError: "
+        with pytest.raises(WorkerError, match=r"^the features failed on frame 4 \(FeaturesJob\): PlvoError: "
                                               r"extract_features: field 'image' must be \(H,W\) uint8"):
             for frame in system.read_ahead(_OneBadImage()):
                 system.step(frame)

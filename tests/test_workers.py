@@ -56,8 +56,8 @@ def test_a_closed_worker_process_exits_at_once_with_every_output_delivered():
         for k in range(4):
             w.submit(Job(k, k))
         assert w.take() == 0
-        proc = w._proc
-        w._jobs.put(None)  # what close() sends; the three outputs not taken must still arrive
+        proc = w._link.proc
+        w._link.put(None)  # what close() sends; the three outputs not taken must still arrive
         assert [w.take() for _ in range(3)] == [1, 3, 6]
         proc.join(timeout=10)
         assert proc.exitcode == 0

@@ -6,7 +6,9 @@ System's feature extraction, `System.prepare`, whose OpenCV calls release the GI
 wait in memory (a KITTI frame is about 2.5 MB). With `finish`, the preparation is done elsewhere (the System's
 features process): prepare(frame) starts it and finish(frame, started) collects it, one frame later, so that the
 next frame is read and its preparation queued while the one before is still being prepared. A loading or
-preparation error is raised in the consumer, at the frame it belongs to.
+preparation error is raised in the consumer, at the frame it belongs to; with `timeout_s`, a frame that takes
+longer than that to arrive (a read or a preparation that hangs) is a RunFailed naming it, so the run never waits
+for ever on the reading thread.
 """
 
 from __future__ import annotations
@@ -14,19 +16,23 @@ from __future__ import annotations
 import collections
 import queue
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from plvo.errors import RunFailed
 from plvo.priority import lower_priority
 from plvo.types import Frame
 
 _END = object()
+_POLL_S = 0.5
 
 
 def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None = None,
-               niceness: int = 0, finish: Callable[[Frame, Any], Frame] | None = None) -> Iterator[Frame]:
+               niceness: int = 0, finish: Callable[[Frame, Any], Frame] | None = None,
+               timeout_s: float | None = None) -> Iterator[Frame]:
     """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed; the
-    reading thread runs at `niceness` (plvo.priority.lower_priority). finish: see the module doc."""
+    reading thread runs at `niceness` (plvo.priority.lower_priority). finish, timeout_s: see the module doc."""
     if prepare is None:
         prepare = _as_is
     if depth <= 0:
@@ -63,15 +69,15 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
                 if not hand_over(finish(*started.popleft())):
                     return
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
-            ready.put(exc)
+            hand_over(exc)
             return
-        ready.put(_END)
+        hand_over(_END)
 
     thread = threading.Thread(target=load, name="plvo-prefetch", daemon=True)
     thread.start()
     try:
-        while True:
-            item = ready.get()
+        for position in range(len(dataset) + 1):
+            item = _next_ready(ready, thread, timeout_s, dataset, position)
             if item is _END:
                 return
             if isinstance(item, BaseException):
@@ -80,6 +86,28 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
     finally:
         stop.set()
         thread.join(timeout=5)
+
+
+def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float | None, dataset,
+                position: int) -> Any:
+    """The reading thread's next item; RunFailed when it takes over timeout_s or the thread ended without one."""
+    t0 = time.monotonic()
+    while True:
+        try:
+            return ready.get(timeout=_POLL_S)
+        except queue.Empty:
+            if not thread.is_alive() and ready.empty():
+                raise RunFailed(f"the frame-reading thread ended before frame {_frame_name(dataset, position)}") \
+                    from None
+            waited = time.monotonic() - t0
+            if timeout_s is not None and waited >= timeout_s:
+                raise RunFailed(f"frame {_frame_name(dataset, position)} was not read and prepared within "
+                                f"{waited:.0f} s (a read or the features process is stuck)") from None
+
+
+def _frame_name(dataset, position: int) -> str:
+    indices = getattr(dataset, "frame_indices", None)
+    return str(indices[position]) if indices is not None and position < len(indices) else f"#{position}"
 
 
 def _as_is(frame: Frame) -> Frame:
