@@ -26,6 +26,7 @@ import os
 import sys
 from pathlib import Path
 
+from plvo import provenance
 from plvo.config import ABLATIONS
 from plvo.data.registry import ROOT_ENV, parse_frames
 from plvo.errors import OutputError, PlvoError
@@ -201,6 +202,7 @@ def _progress(total: int):
 
 def run_run(args: argparse.Namespace) -> int:
     """Build the specs, fan them out, write the report; exit 1 when a task failed (the tables are written)."""
+    started = provenance.start()  # report.json's provenance: the load as the runs begin
     if args.workers < 1:
         raise PlvoError(f"--workers {args.workers}: must be at least 1")
     if args.out.exists() and not args.out.is_dir():
@@ -223,7 +225,7 @@ def run_run(args: argparse.Namespace) -> int:
     results = execute(specs, args.out, workers=args.workers, ray=args.ray, resume=args.resume,
                       on_result=_progress(len(specs)))
     report = build_report(results)
-    paths = write_report(report, args.out, plots=not args.no_plots)
+    paths = write_report(report, args.out, plots=not args.no_plots, started=started)
     print(report_markdown(report))
     print(f"wrote {paths['markdown']} and {paths['json']}" + ("" if args.no_plots else f", plots in {args.out / 'plots'}"))
     return 0 if all(r.ok for r in results) else 1

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from plvo.eval.kitti_metric import DEVKIT_LENGTHS, SHORT_LENGTHS, SegmentErrors
-from plvo.eval.report import LABELS, Report, save_figure
+from plvo.eval.report import LABELS, Report, pooled_label, save_figure
 
 SPEED_BINS_MPS = np.arange(2.0, 25.0, 2.0)  # devkit: bins centred every 2 m/s, +-2 m/s wide
 GT_STYLE = {"color": "black", "linewidth": 2.0, "label": "ground truth"}
@@ -104,7 +104,7 @@ def plot_error_by_length(report: Report, path: Path) -> Path:
         # the devkit matches a segment to a length within 1 m
         t = _binned(seg.t_err * 100.0, seg.length, lengths, 1.0)
         r = _binned(np.degrees(seg.r_err), seg.length, lengths, 1.0)
-        label = LABELS.get(setting, setting)
+        label = pooled_label(report, setting)
         axes[0].plot(lengths, t, "o-", label=label)
         axes[1].plot(lengths, r, "o-", label=label)
     _log_if_spread(axes)
@@ -120,7 +120,7 @@ def plot_error_by_speed(report: Report, path: Path) -> Path:
         t = _binned(seg.t_err * 100.0, seg.speed, SPEED_BINS_MPS, 2.0)
         r = _binned(np.degrees(seg.r_err), seg.speed, SPEED_BINS_MPS, 2.0)
         keep = np.isfinite(t)
-        label = LABELS.get(setting, setting)
+        label = pooled_label(report, setting)
         axes[0].plot(SPEED_BINS_MPS[keep] * 3.6, t[keep], "o-", label=label)
         axes[1].plot(SPEED_BINS_MPS[keep] * 3.6, r[keep], "o-", label=label)
     _log_if_spread(axes)

@@ -3,7 +3,10 @@
 Rows are sequences, columns settings (the plvo ablations, then KISS-ICP). Figures are recomputed from each task
 folder's gt.txt and poses.txt with plvo.eval.kitti_metric, so they equal `plvo eval metric` on the same files.
 The "all" row is the devkit's pooled figure (every segment of every sequence averaged together, as the KITTI
-server computes it); "mean" is the plain mean of the per-sequence figures. Sequences shorter than 100 m have no
+server computes it); "mean" is the plain mean of the per-sequence figures. A setting whose run of some sequence
+failed (or has no ground truth) has its pooled figure over the others only: it is marked, never passed off as over
+all of them (report.json's "incomplete": setting -> those sequences; in report.md "0.62*" and a footnote), and its
+mean is left out. Sequences shorter than 100 m have no
 devkit segment: their cells read "-", and the short-segment table (10/20/40 m, every frame a start) covers them.
 """
 
@@ -19,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from plvo import provenance
 from plvo.atomic import atomic_path, write_text_atomic
 from plvo.eval.kitti_metric import (
     DEVKIT_LENGTHS,
@@ -97,6 +101,13 @@ def _rel(ev: SequenceEvaluation, key: str) -> RelativeError:
     return ev.short if key.startswith("short") else ev.kitti
 
 
+def incomplete(report: Report) -> dict[str, list[str]]:
+    """setting -> the report's sequences its pooled figures leave out (a failed run, no ground truth, no task);
+    empty when they pool every sequence."""
+    return {s: [q for q in report.sequences if not isinstance(report.cells[s].get(q), SequenceEvaluation)]
+            for s in report.settings}
+
+
 def table_values(report: Report, key: str, getter) -> dict[str, dict[str, float | None]]:
     """setting -> {sequence: value or None, "all": pooled, "mean": mean of the sequences' values}."""
     out: dict[str, dict[str, float | None]] = {}
@@ -134,6 +145,8 @@ def report_json(report: Report) -> dict[str, Any]:
         "sequences": list(report.sequences),
         "devkit_lengths_m": list(DEVKIT_LENGTHS),
         "short_lengths_m": list(SHORT_LENGTHS),
+        # the sequences each setting's pooled ("all") figures leave out: they are over the others only
+        "incomplete": incomplete(report),
     }
     for key, _title, getter, _fmt in TABLES:
         data[key] = table_values(report, key, getter)
@@ -164,14 +177,35 @@ def _path_length(report: Report, seq: str) -> float | None:
 
 
 def _md_table(
-    report: Report, title: str, values: dict[str, dict[str, float | None]], fmt: str, rows=None, first="Seq."
+    report: Report, title: str, values: dict[str, dict[str, float | None]], fmt: str, rows=None, first="Seq.",
+    pooled_rows: tuple[str, ...] = ("all",), missing: dict[str, list[str]] | None = None,
 ) -> list[str]:
+    """One Markdown table; a pooled row's figure of a setting in `missing` (setting -> sequences it leaves out)
+    carries a '*' and the table a footnote naming them."""
+    missing = {s: q for s, q in (missing or {}).items() if q}
     head = [first] + [LABELS.get(s, s) for s in report.settings]
     lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    marked = set()
     for row in rows if rows is not None else (*report.sequences, "all", "mean"):
-        cells = [fmt.format(values[s][row]) if values[s].get(row) is not None else "-" for s in report.settings]
+        cells = []
+        for s in report.settings:
+            value = values[s].get(row)
+            star = row in pooled_rows and s in missing and value is not None
+            marked |= {s} if star else set()
+            cells.append("-" if value is None else fmt.format(value) + ("*" if star else ""))
         lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    for s in report.settings:
+        if s in marked:
+            lines += ["", f"\\* {LABELS.get(s, s)}: pooled without {', '.join(missing[s])} (no figure there: see the "
+                          "failed runs), so over fewer sequences than the table's rows."]
     return lines + [""]
+
+
+def pooled_label(report: Report, setting: str) -> str:
+    """A setting's label for a figure of its pooled segments, naming the sequences they leave out."""
+    left_out = incomplete(report)[setting]
+    label = LABELS.get(setting, setting)
+    return f"{label} (without {', '.join(left_out)})" if left_out else label
 
 
 def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
@@ -183,25 +217,38 @@ def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
     lines += [f"Settings: {legend}.", f"Ground-truth path lengths: {lengths}.", "",
               "`all`: every segment of every sequence averaged together (the devkit's figure); `mean`: mean of the "
               "sequences. `-`: no figure (a sequence shorter than 100 m has no devkit segment; a failed run).", ""]
+    missing = data["incomplete"]
     for key, title, _getter, fmt in TABLES:
-        lines += _md_table(report, title, data[key], fmt)
+        lines += _md_table(report, title, data[key], fmt, missing=missing)
     by_length = data["short_by_length_t_err_pct"]
     rows = [f"{v:g}" for v in data["short_lengths_m"]]
     lines += _md_table(report, "Translation error [%] by short length, all sequences pooled", by_length, "{:.2f}",
-                       rows=rows, first="length [m]")
+                       rows=rows, first="length [m]", pooled_rows=tuple(rows), missing=missing)
     for attr, title in (("ate_m", "ATE RMSE [m] after SE(3) alignment"), ("final_drift_m", "Final drift [m]")):
         lines += _md_table(report, title, data[attr], "{:.3f}", rows=report.sequences)
     failed = [(s, q, t["error"]) for s, col in data["tasks"].items() for q, t in col.items() if t["status"] != "ok"]
     if failed:
         lines += ["**Failed runs**", ""] + [f"- {s} / {q}: {e.splitlines()[0] if e else '?'}" for s, q, e in failed]
         lines.append("")
+    prov = data.get("provenance")
+    if prov:
+        m = prov["machine"]
+        rev = (prov["revision"] or "unknown")[:12] + ("+dirty" if prov["dirty"] else "")
+        lines += [f"Revision {rev}, {prov.get('finished_utc', prov['started_utc'])}; {m['cpu_model']}, "
+                  f"{m['cpu_count']} cores, {m['mem_total_mb']} MB, {m['os']}; load {prov['load_start'][0]:.2f} -> "
+                  f"{prov.get('load_end', prov['load_start'])[0]:.2f}; `{prov['command_line']}`", ""]
     return "\n".join(lines)
 
 
-def write_report(report: Report, out_dir: str | os.PathLike[str], plots: bool = True) -> dict[str, Path]:
-    """Write report.md, report.json and (plots) the PNG figures under out_dir; returns name -> path."""
+def write_report(report: Report, out_dir: str | os.PathLike[str], plots: bool = True,
+                 started: dict[str, Any] | None = None) -> dict[str, Path]:
+    """Write report.md, report.json and (plots) the PNG figures under out_dir; returns name -> path.
+
+    started: plvo.provenance.start() of the evaluation (its load then); default: made now. report.json carries it,
+    finished now, as "provenance"."""
     out = Path(out_dir)
     data = report_json(report)
+    data["provenance"] = provenance.finish(started if started is not None else provenance.start())
     paths = {"json": out / "report.json", "markdown": out / "report.md"}
     write_text_atomic(paths["json"], json.dumps(data, indent=1, allow_nan=False) + "\n")
     write_text_atomic(paths["markdown"], report_markdown(report, data))
