@@ -30,6 +30,7 @@ import time
 from importlib import metadata
 from pathlib import Path
 
+from plvo import provenance
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_dict, config_to_toml, load_config
 from plvo.errors import DatasetError, OutputError
@@ -93,22 +94,12 @@ def _open(args: argparse.Namespace):
     return open_dataset(root, DEFAULT_SEQUENCE, frames or parse_frames(SYNTH_DEFAULT_FRAMES)), root
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine_info() -> dict:
     """CPU model, core counts, memory, load average now, thread settings (environment and OpenCV's)."""
     import cv2
     import psutil
 
-    return {"cpu_model": _cpu_model(), "cpu_count": os.cpu_count(),
+    return {"cpu_model": provenance.cpu_model(), "cpu_count": os.cpu_count(),
             "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
             "mem_total_mb": round(psutil.virtual_memory().total / 2**20), "platform": platform.platform(),
             "python": platform.python_version(), "load_avg_start": [round(x, 2) for x in os.getloadavg()],
@@ -177,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
     machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
     options = {k: str(v) if isinstance(v, Path) else v for k, v in sorted(vars(args).items())}
     head = {"schema": report["schema"], "created_utc": report["created_utc"], "command_line": command,
-            "options": options, "git_revision": info.git_revision, "versions": versions(), "machine": machine}
+            "options": options, "git_revision": info.git_revision, "versions": versions(), "machine": machine,
+            "provenance": provenance.finish(report["provenance"])}  # its end: after the recording levels' run
     report = {**head, **report, "input": {**report["input"], "root": str(root)}}
     write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
     print(format_table(report))
@@ -200,7 +192,7 @@ def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, 
     machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
     report = {"command_line": command, "git_revision": info.git_revision, "versions": versions(),
               "machine": machine, "input": {"sequence": dataset.sequence, "frames": len(dataset)}, **report,
-              "config": config_to_dict(cfg)}
+              "config": config_to_dict(cfg), "provenance": provenance.finish(report["provenance"])}
     write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
     f = report.get("final") or {}
     print(f"soak {dataset.sequence}: {report['fps']:.2f} frames/s overall, windows median {report['fps_window_median']} "
@@ -219,6 +211,10 @@ def _finite(obj):
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+def _fig(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
 
 
 def _ms(v: float | None) -> str:
@@ -248,11 +244,14 @@ def format_table(report: dict) -> str:
                          f"{on['rrd_bytes_per_frame'] or 0:,} bytes of .rrd a frame")
     dep = report.get("deployed")
     if dep:
-        kiss = "-" if dep["kiss_icp_fps"] is None else f"{dep['kiss_icp_fps']:.2f}"
-        ratio = "" if dep.get("ratio_to_kiss_icp") is None else f" (ratio, run by run: {dep['ratio_to_kiss_icp']:.2f})"
-        lines.append(f"deployed (as plvo-viz: from disk, recording on): {dep['fps']:.2f} frames/s; KISS-ICP on the "
-                     f"same scans: {kiss} frames/s{ratio} (workers' start-up before the first frame: "
-                     f"{dep.get('workers_ready_s', float('nan')):.2f} s)")
+        lines.append(f"deployed (as plvo-viz: from disk, recording on): {dep['fps']:.2f} frames/s, set-up "
+                     f"{dep['setup_s']:.2f} s; KISS-ICP on the same scans: {_fig(dep['kiss_icp_fps'])} frames/s, "
+                     f"set-up {_fig(dep['kiss_icp_setup_s'])} s; ratio, run by run, median "
+                     f"{_fig(dep['ratio_to_kiss_icp'])} (medians of {len(dep['pairs'])} runs)")
+        for n, p in enumerate(dep["pairs"]):
+            lines.append(f"  run {n + 1}: plvo {p['plvo_fps']:.2f} frames/s (set-up {p['plvo_setup_s']:.2f} s), "
+                         f"KISS-ICP {_fig(p['kiss_icp_fps'])} frames/s (set-up {_fig(p['kiss_icp_setup_s'])} s), "
+                         f"ratio {_fig(p['ratio'])}")
     levels = report.get("recording_levels")
     if levels:
         lines.append("recording, bytes a frame: " + ", ".join(

@@ -235,6 +235,10 @@ class _KittiSequence(SelectedFrames):
             )
         return split_gray_color(image)
 
+    def load_scan(self, i: int) -> np.ndarray:
+        """The scan (N,4) of position i alone, without decoding the image (for lidar-only methods)."""
+        return self._load_scan(self._position(i))
+
     def _load_scan(self, i: int) -> np.ndarray:
         path, frame = self._scans[i], self._frames[i]
         _check_scan_size(path, frame)

@@ -9,10 +9,12 @@ Every stage entry says where its numbers come from ("source"):
   config given (the defaults: concurrent workers), recording off and on (PnP/PnL, matching + PnP/PnL a frame,
   scale correction, bundle adjustment, the loop closer).
 "deployed" is the figure a user gets from plvo-viz: frames read from disk as plvo-viz reads them, recording on,
-the config given, and KISS-ICP's frames a second over the same scans in the same bench run beside it; from `plvo
-bench` each of these runs is made in a fresh process, before anything is loaded for the other figures.
-The machine may be shared: the result carries the load average, the CPU time used and the thread settings so a
-reader can judge the figures. Budgets are the design's ("Performance budget"); `within_budget` compares the median.
+the config given, and KISS-ICP's frames a second over the same scans (read alone) in the same bench run beside it,
+both clocked alike from the first frame read to the last result, their set-up (imports, workers, pipeline) apart;
+from `plvo bench` each of these runs is made in a fresh process, before anything is loaded for the other figures.
+The machine may be shared: the result carries its provenance (plvo.provenance: revision, machine, load at start and
+end, command), the load average of every run, the CPU time used and the thread settings so a reader can judge the
+figures. Budgets are the design's ("Performance budget"); `within_budget` compares the median.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from plvo import provenance
 from plvo.config import SystemConfig, config_to_dict
 from plvo.errors import ConfigError
 from plvo.recording import NullRecorder, Recorder, RunInfo
@@ -280,6 +283,7 @@ class SystemRun:
     timings: dict[str, list[float]]
     rrd_bytes: int | None = None
     workers_cpu_s: float | None = None  # the worker processes' CPU during the run (their start-up excluded)
+    setup_s: float | None = None  # before the clock: imports, opening the input, the System, its workers' start-up
 
     @property
     def fps(self) -> float:
@@ -289,7 +293,8 @@ class SystemRun:
         step = [f.get("total", 0.0) for f in self.per_frame]
         rec = [f.get("recording", 0.0) for f in self.per_frame]
         out = {"recording": self.recording, "frames": self.frames, "wall_s": round(self.wall_s, 3),
-               "fps": round(self.fps, 3), "cpu_s": round(self.cpu_s, 3),
+               "fps": round(self.fps, 3), "setup_s": None if self.setup_s is None else round(self.setup_s, 3),
+               "cpu_s": round(self.cpu_s, 3),
                "cpu_ms_per_frame": round(1e3 * self.cpu_s / max(self.frames, 1), 2),
                "cpu_share": round(self.cpu_s / max(self.wall_s, 1e-9), 3),  # cores kept busy; 2.0 = both
                "tracking_thread_fps": round(len(step) / max(sum(step), 1e-9), 3),
@@ -316,11 +321,14 @@ class SystemRun:
 
 
 def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None = None,
-                 info: RunInfo | None = None, rrd: Path | None = None) -> SystemRun:
+                 info: RunInfo | None = None, rrd: Path | None = None, setup_started: float | None = None
+                 ) -> SystemRun:
     """Run the System over `frames` as plvo-viz does, timing it; `rrd`: the recording file to measure.
 
     As in plvo-viz, the System (and so its worker processes) is made before the recorders start, and the clock runs
-    from the first frame to the workers' last result: what plvo-viz's timings.json reports."""
+    from the first frame read to the workers' last result: what plvo-viz's timings.json reports. Everything before
+    it, from `setup_started` (time.perf_counter(); default: this call) on, is the run's setup_s."""
+    setup_started = time.perf_counter() if setup_started is None else setup_started
     from plvo.system import System, run_system
 
     tap = TimingTap(recorder if recorder is not None else NullRecorder())
@@ -341,7 +349,7 @@ def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None
     workers = _cpu_s(resource.RUSAGE_CHILDREN) - children0 - startup if startup is not None else None
     size = rrd.stat().st_size if rrd is not None and rrd.exists() else None
     return SystemRun(recorder is not None, len(frames), wall, cpu, out.n_keyframes, out.n_lost, load0,
-                     os.getloadavg(), rss.summary(), tap.per_frame, out.timings, size, workers)
+                     os.getloadavg(), rss.summary(), tap.per_frame, out.timings, size, workers, t0 - setup_started)
 
 
 def _cpu_s(who: int) -> float:
@@ -413,54 +421,80 @@ def deployed_figures(dataset, cfg: SystemConfig, recorder_factory: Callable[[int
                      info: RunInfo | None, repeat: int = 1, reopen: Callable[[], Any] | None = None) -> dict:
     """What a user gets from plvo-viz: the given config (the defaults: concurrent workers), a Rerun recording on,
     frames read from disk as plvo-viz reads them (one ahead, in a thread), the workers' last results waited for;
-    and KISS-ICP over the same scans, read from disk likewise, right after each run (median over `repeat`).
+    and KISS-ICP over the same scans, read from disk likewise (the scans alone), right after each run.
+
+    Both are timed alike: the clock runs from the first frame read to the last result; what comes before it (the
+    imports, opening the dataset, plvo's System and its worker processes' start-up, KISS-ICP's pipeline) is each
+    run's setup_s, reported apart. Per run both frames a second, both setups and their ratio; medians over `repeat`.
 
     reopen: a picklable callable that opens the dataset again (and a picklable recorder_factory): then each run,
     plvo's and KISS-ICP's, is made in a fresh process, as a user runs plvo-viz, instead of in this one, which holds
     the runs before it (its resident memory grew by ~25 MB a run) and whatever its caller loaded."""
-    runs, kiss = [], []
+    runs: list[SystemRun] = []
+    kiss: list[KissRun | None] = []
+    calls: list[tuple[float, float]] = []  # seconds of each call, plvo's and KISS-ICP's, as the bench saw them
     for r in range(repeat):
         log.info("bench: deployed run (plvo-viz's way, recording on), run %d of %d", r + 1, repeat)
+        t0 = time.perf_counter()
         if reopen is None:
             recorder, path = recorder_factory(1000 + r)
             runs.append(bench_system(dataset, cfg, recorder, info, path))
-            kiss.append(kiss_fps(dataset))
+            t1 = time.perf_counter()
+            kiss.append(kiss_run(dataset))
         else:
             runs.append(in_fresh_process(_deployed_run, reopen, cfg, recorder_factory, info, 1000 + r))
+            t1 = time.perf_counter()
             kiss.append(in_fresh_process(_kiss_run, reopen))
-    fps = float(np.median([run.fps for run in runs]))
+        calls.append((t1 - t0, time.perf_counter() - t1))
     summaries = [run.summary() for run in runs]
     kiss_ok = [k for k in kiss if k is not None]
-    kfps = float(np.median(kiss_ok)) if kiss_ok else None
     # Each run against the KISS-ICP run right after it: a shared machine's speed drifts between runs by more than
     # the two differ, so the ratio of neighbours is the steadier figure.
-    ratios = [run.fps / k for run, k in zip(runs, kiss) if k]
+    pairs = [{"plvo_fps": round(run.fps, 3), "kiss_icp_fps": None if k is None else round(k.fps, 3),
+              "plvo_setup_s": round(run.setup_s, 3), "kiss_icp_setup_s": None if k is None else round(k.setup_s, 3),
+              "ratio": None if k is None else round(run.fps / k.fps, 3),
+              # the whole call: with fresh processes also their start, unpickling, closing and exit
+              "plvo_call_s": round(c[0], 3), "kiss_icp_call_s": round(c[1], 3)}
+             for run, k, c in zip(runs, kiss, calls)]
+    ratios = [p["ratio"] for p in pairs if p["ratio"] is not None]
+    fps = _median([run.fps for run in runs])
+    kfps = _median([k.fps for k in kiss_ok])
     where = "each run in a fresh process, as plvo-viz runs" if reopen is not None else "in the bench's process"
-    return {"how": "the config as given, recording on, frames read from disk (prefetched) as plvo-viz does; "
-                   "fps = frames / wall time from the first frame to the workers' last results (the worker processes' "
-                   "start-up before it, as plvo-viz waits for it: workers_ready_s); KISS-ICP 1.3 (voxel 1 m) on the "
-                   f"same scans read from disk, in the same bench run; {where}",
+    return {"how": "the config as given, recording on, frames read from disk (prefetched) as plvo-viz does; KISS-ICP "
+                   "1.3 (voxel 1 m) on the same scans read from disk (the scans alone), right after each plvo run; "
+                   "for both, fps = frames / wall time from the first frame read to the last result (plvo: its "
+                   "workers' last results), and setup_s = the time before it (imports, opening the dataset; plvo's "
+                   "System and its worker processes' start-up, of which workers_ready_s is the wait; KISS-ICP's "
+                   f"pipeline); ratio = plvo fps / KISS-ICP fps of the same run; medians over the runs; {where}",
             "fresh_processes": reopen is not None,
             "fps": round(fps, 3),
-            "workers_ready_s": round(float(np.median([s["workers_ready_s"] for s in summaries])), 3),
+            "setup_s": round(_median([run.setup_s for run in runs]), 3),
+            "workers_ready_s": round(_median([s["workers_ready_s"] for s in summaries]), 3),
             "kiss_icp_fps": None if kfps is None else round(kfps, 3),
+            "kiss_icp_setup_s": round(_median([k.setup_s for k in kiss_ok]), 3) if kiss_ok else None,
             "at_least_kiss_icp": None if kfps is None else bool(fps >= kfps),
-            "ratio_to_kiss_icp": round(float(np.median(ratios)), 3) if ratios else None,
-            "ratio_to_kiss_icp_runs": [round(r, 3) for r in ratios],
-            "runs": summaries, "kiss_icp_runs_fps": kiss}
+            "ratio_to_kiss_icp": round(_median(ratios), 3) if ratios else None,
+            "ratio_to_kiss_icp_runs": ratios,
+            "pairs": pairs, "runs": summaries, "kiss_icp_runs": [None if k is None else k.summary() for k in kiss]}
+
+
+def _median(values: Sequence[float]) -> float | None:
+    return float(np.median(values)) if len(values) else None
 
 
 def _deployed_run(reopen: Callable[[], Any], cfg: SystemConfig, recorder_factory, info: RunInfo | None,
                   run: int) -> SystemRun:
+    setup_started = time.perf_counter()
     from plvo.heap import keep_freed_memory
 
     keep_freed_memory()  # this process stands for plvo-viz's, whose entry point does the same (plvo_app.cli)
     recorder, path = recorder_factory(run)
-    return bench_system(reopen(), cfg, recorder, info, path)
+    return bench_system(reopen(), cfg, recorder, info, path, setup_started)
 
 
-def _kiss_run(reopen: Callable[[], Any]) -> float | None:
-    return kiss_fps(reopen())
+def _kiss_run(reopen: Callable[[], Any]) -> KissRun | None:
+    setup_started = time.perf_counter()
+    return kiss_run(reopen(), setup_started)
 
 
 def in_fresh_process(fn: Callable, *args: Any) -> Any:
@@ -476,18 +510,42 @@ def in_fresh_process(fn: Callable, *args: Any) -> Any:
                                f"{type(exc).__name__}: {exc}") from exc
 
 
-def kiss_fps(dataset) -> float | None:
-    """KISS-ICP's frames a second over the dataset (loading included), or None when kiss-icp is not installed."""
+@dataclass(frozen=True)
+class KissRun:
+    """One KISS-ICP run: frames, wall seconds from the first scan read to the last registered, setup seconds
+    before that (kiss_icp's import, its pipeline; in a fresh process also opening the dataset)."""
+
+    frames: int
+    wall_s: float
+    setup_s: float
+
+    @property
+    def fps(self) -> float:
+        return self.frames / max(self.wall_s, 1e-9)
+
+    def summary(self) -> dict:
+        return {"frames": self.frames, "wall_s": round(self.wall_s, 3), "fps": round(self.fps, 3),
+                "setup_s": round(self.setup_s, 3)}
+
+
+def kiss_run(dataset, setup_started: float | None = None) -> KissRun | None:
+    """KISS-ICP over the dataset's scans, read from disk alone inside the clock, its import and set-up outside (from
+    `setup_started`, time.perf_counter(); default: this call) -> KissRun, or None when kiss-icp is not installed."""
+    setup_started = time.perf_counter() if setup_started is None else setup_started
     try:
         from plvo.eval.kiss import run_kiss
+
+        out = run_kiss(dataset)
     except ImportError:
         return None
-    t0 = time.perf_counter()
-    try:
-        run_kiss(dataset)
-    except ImportError:
-        return None
-    return round(len(dataset) / max(time.perf_counter() - t0, 1e-9), 3)
+    return KissRun(len(dataset), out.wall_s, out.started_at - setup_started)
+
+
+def kiss_fps(dataset) -> float | None:
+    """KISS-ICP's frames a second over the dataset (as kiss_run: scans read inside the clock, set-up outside), or
+    None when kiss-icp is not installed."""
+    k = kiss_run(dataset)
+    return None if k is None else round(k.fps, 3)
 
 
 # ---- the whole bench ------------------------------------------------------------------------------------------
@@ -561,7 +619,8 @@ def run_bench(dataset, cfg: SystemConfig, stages: frozenset[str], repeat: int = 
     if repeat < 1:
         raise ConfigError(f"--repeat must be at least 1, got {repeat}")
     t0 = time.perf_counter()
-    report: dict[str, Any] = {"schema": SCHEMA, "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    prov = provenance.start()
+    report: dict[str, Any] = {"schema": SCHEMA, "created_utc": prov["started_utc"],
                               "stage_groups": [g for g in STAGE_GROUPS if g in stages], "repeat": repeat}
     if len(dataset) < 2:
         raise ConfigError(f"bench: needs at least 2 frames, the selection of {dataset.sequence} has {len(dataset)}")
@@ -594,4 +653,5 @@ def run_bench(dataset, cfg: SystemConfig, stages: frozenset[str], repeat: int = 
     report["memory"] = memory
     report["config"] = config_to_dict(cfg)
     report["duration_s"] = round(time.perf_counter() - t0, 2)
+    report["provenance"] = provenance.finish(prov)
     return report

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from plvo import provenance
 from plvo.config import SystemConfig
 from plvo.geometry import se3
 from plvo.recording import Recorder, RunInfo
@@ -115,6 +116,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     """Run the System over the dataset as plvo-viz does, through a SoakTap -> the soak report (schema SCHEMA)."""
     from plvo.system import System
 
+    prov = provenance.start()
     tap = SoakTap(recorder, rrd, window)
     system = System(config, tap, calib=dataset.calib)  # as plvo-viz: the workers start while the recorder does
     system.start(info)
@@ -136,6 +138,7 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     rrd_size = rrd.stat().st_size if rrd is not None and rrd.exists() else None
     report["recording"] = {"bytes": rrd_size, "bytes_per_frame": None if rrd_size is None else
                            round(rrd_size / max(len(dataset), 1))}
+    report["provenance"] = provenance.finish(prov)
     return report
 
 
