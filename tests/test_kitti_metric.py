@@ -143,8 +143,9 @@ def test_umeyama_recovers_a_similarity():
     np.testing.assert_allclose(R_hat, R, atol=1e-12)
     np.testing.assert_allclose(t_hat, t, atol=1e-10)
     assert s_hat == pytest.approx(s, rel=1e-12)
-    R_hat, t_hat, s_hat = umeyama(src, src @ R.T + t, with_scale=False)
-    np.testing.assert_allclose(R_hat, R, atol=1e-12) and s_hat == 1.0
+    R_hat, t_hat, s_hat = umeyama(src, s * src @ R.T + t, with_scale=False)
+    np.testing.assert_allclose(R_hat, R, atol=1e-12)  # a scale does not change the best rotation
+    assert s_hat == 1.0  # without scale, none is estimated, though 2.5 would fit
 
 
 def test_ate_of_a_known_offset_error():

@@ -103,6 +103,8 @@ def test_loop_is_closed_and_end_point_error_falls(run):
     err = np.linalg.norm(out.poses[:, :3, 3] - gt[:, :3, 3], axis=1)
     later = np.arange(fq, len(err))
     assert {r.frame_index for r in accepted} <= set(later.tolist())
+    # measured 0.025 m (frame 130; the loop frames 118 and 133: 0.002 and 0.008 m); with the keyframe frames' poses
+    # taken after the correction, frame 118 reads 0.125 m
     assert err[later].max() < 0.1, (err[later].max(), int(later[np.argmax(err[later])]))
     # The global bundle adjustment ran after each correction (its result is in the map the errors above read).
     gba = np.asarray(out.timings["loop_global_ba"])
