@@ -444,8 +444,7 @@ class System:
 
     def _graph(self, frame_index: int, scale: float = 1.0) -> GraphResult:
         """The keyframe graph as the map has it now: poses, odometry (registration) and loop edges, zeta."""
-        with self.map.lock:
-            poses, new = self.map.poses(), self.map.edges[len(self._edge_rows[0]):]
+        poses, new = self.map.poses(), self.map.edges[len(self._edge_rows[0]):]
         # The map only appends edges: their arrays grow by what is new instead of being rebuilt each keyframe.
         pairs, kinds, zeta = self._edge_rows
         if new:
@@ -481,8 +480,7 @@ class System:
         """Frame index -> (4,4) T_world_cam of the tracked camera, with every back-end refinement applied."""
         if self.map is None:
             return {}
-        with self.map.lock:
-            return {f: self.map.keyframe_pose(k) @ T_kf_cam for f, (k, T_kf_cam) in self._frame_ref.items()}
+        return {f: self.map.keyframe_pose(k) @ T_kf_cam for f, (k, T_kf_cam) in self._frame_ref.items()}
 
     def poses_cam0(self, frame_indices: Iterable[int]) -> np.ndarray:
         """(N,4,4) T_world_cam0 of the given frames (what KITTI pose files hold)."""

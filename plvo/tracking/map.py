@@ -9,13 +9,11 @@ id, keyframe id, feature index, measurement, prior).
 One owner, one writer: the tracker adds keyframes, landmarks and observations; the workers (back end, loop closer)
 never write it. They read copies taken at fixed points (`window_data`, `global_data`, `poses`) and return typed
 `MapCorrection`s, which `apply` writes in one place (plvo.tracking.corrections has the rule). Keyframe poses are
-held read-only outside `add_keyframe` and `apply`. Every method takes `self.lock` (an RLock), so a viewer thread
-may read a consistent `snapshot()` at any time.
+held read-only outside `add_keyframe` and `apply`. Only the tracker's thread touches the map, so it has no lock.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,7 +88,6 @@ class LandmarkMap:
     """Point and line landmarks in the world frame, keyframe poses T_world_cam, and keyframe observations."""
 
     def __init__(self) -> None:
-        self.lock = threading.RLock()
         self.version = 0
         self._pts = _point_store()
         self._lines = _line_store()
@@ -106,13 +103,11 @@ class LandmarkMap:
     # ---- sizes -------------------------------------------------------------------------------------------
     @property
     def n_points(self) -> int:
-        with self.lock:
-            return int(self._pts["alive"].sum())
+        return int(self._pts["alive"].sum())
 
     @property
     def n_lines(self) -> int:
-        with self.lock:
-            return int(self._lines["alive"].sum())
+        return int(self._lines["alive"].sum())
 
     @property
     def n_keyframes(self) -> int:
@@ -121,29 +116,25 @@ class LandmarkMap:
     # ---- keyframes ---------------------------------------------------------------------------------------
     def add_keyframe(self, frame_index: int, T_world_cam: np.ndarray) -> int:
         """Register a keyframe with its (4,4) pose; returns its id (0, 1, ...)."""
-        with self.lock:
-            T = se3.orthonormalize_batch(np.asarray(T_world_cam, float)[None])
-            self._kfs.cols["T_world_cam"].flags.writeable = True
-            row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
-            self._kfs.cols["T_world_cam"].flags.writeable = False
-            self._obs_start[False].append(self._pobs.n)
-            self._obs_start[True].append(self._lobs.n)
-            self.version += 1
-            return int(row[0])
+        T = se3.orthonormalize_batch(np.asarray(T_world_cam, float)[None])
+        self._kfs.cols["T_world_cam"].flags.writeable = True
+        row = self._kfs.append(frame=np.array([frame_index]), T_world_cam=T)
+        self._kfs.cols["T_world_cam"].flags.writeable = False
+        self._obs_start[False].append(self._pobs.n)
+        self._obs_start[True].append(self._lobs.n)
+        self.version += 1
+        return int(row[0])
 
     def poses(self) -> np.ndarray:
         """(N,4,4) T_world_cam of every keyframe, by id (a copy)."""
-        with self.lock:
-            return self._kfs["T_world_cam"].copy()
+        return self._kfs["T_world_cam"].copy()
 
     def keyframe_pose(self, kf_id: int) -> np.ndarray:
         """(4,4) T_world_cam of keyframe kf_id (a copy)."""
-        with self.lock:
-            return self._kfs["T_world_cam"][kf_id].copy()
+        return self._kfs["T_world_cam"][kf_id].copy()
 
     def keyframe_frame(self, kf_id: int) -> int:
-        with self.lock:
-            return int(self._kfs["frame"][kf_id])
+        return int(self._kfs["frame"][kf_id])
 
     # ---- adding landmarks --------------------------------------------------------------------------------
     def add_points(self, positions: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
@@ -153,14 +144,13 @@ class LandmarkMap:
         """
         positions = np.asarray(positions, dtype=float).reshape(-1, 3)
         n = len(positions)
-        with self.lock:
-            ids = self._pts.append(
-                position=positions, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
-                has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
-                first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
-            )
-            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2), depth)
-            return ids
+        ids = self._pts.append(
+            position=positions, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
+            has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
+            first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
+        )
+        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2), depth)
+        return ids
 
     def add_lines(self, endpoints: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
                   segment_idx: np.ndarray, segments: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
@@ -168,32 +158,29 @@ class LandmarkMap:
         (n,2,3) camera-frame prior endpoints -> (n,) ids."""
         endpoints = np.asarray(endpoints, dtype=float).reshape(-1, 2, 3)
         n = len(endpoints)
-        with self.lock:
-            ids = self._lines.append(
-                endpoints=endpoints, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
-                has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
-                first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
-            )
-            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(n, 4),
-                          prior)
-            return ids
+        ids = self._lines.append(
+            endpoints=endpoints, descriptor=np.asarray(descriptors).reshape(n, _DESC_BYTES),
+            has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
+            first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
+        )
+        self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(n, 4),
+                      prior)
+        return ids
 
     def add_point_observations(self, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray, uv: np.ndarray,
                                depth: np.ndarray | None = None) -> None:
         """Record that point landmarks ids (k,) were seen in keyframe kf_id at keypoints feature_idx, (k,2) px,
         with (k,) depth priors z (NaN or None: none)."""
-        with self.lock:
-            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2), depth)
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2), depth)
 
     def add_line_observations(self, ids: np.ndarray, kf_id: int, segment_idx: np.ndarray,
                               segments: np.ndarray, prior: np.ndarray | None = None) -> None:
         """Record that line landmarks ids (k,) were seen in keyframe kf_id as segments (k,4), with (k,2,3)
         camera-frame prior endpoints (NaN or None: none)."""
-        with self.lock:
-            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4),
-                          prior)
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4),
+                      prior)
 
     def _add_obs(self, store: LandmarkTable, obs: Columns, ids, kf_id, feature_idx, meas, prior=None) -> None:
         rows, found = store.rows(ids)
@@ -213,46 +200,38 @@ class LandmarkMap:
     # ---- reading -----------------------------------------------------------------------------------------
     def point_positions(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids -> (k,3) world positions; NaN for removed landmarks."""
-        with self.lock:
-            rows, ok = self._pts.live_rows(ids)
-            out = self._pts.cols["position"][rows]
-            out[~ok] = np.nan
-            return out
+        rows, ok = self._pts.live_rows(ids)
+        out = self._pts.cols["position"][rows]
+        out[~ok] = np.nan
+        return out
 
     def line_endpoints(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids -> (k,2,3) world endpoints; NaN for removed landmarks."""
-        with self.lock:
-            rows, ok = self._lines.live_rows(ids)
-            out = self._lines.cols["endpoints"][rows]
-            out[~ok] = np.nan
-            return out
+        rows, ok = self._lines.live_rows(ids)
+        out = self._lines.cols["endpoints"][rows]
+        out[~ok] = np.nan
+        return out
 
     def point_alive(self, ids: np.ndarray) -> np.ndarray:
-        with self.lock:
-            return self._pts.live_rows(ids)[1]
+        return self._pts.live_rows(ids)[1]
 
     def line_alive(self, ids: np.ndarray) -> np.ndarray:
-        with self.lock:
-            return self._lines.live_rows(ids)[1]
+        return self._lines.live_rows(ids)[1]
 
     def point_descriptors(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids of live landmarks -> (k,32) ORB descriptors."""
-        with self.lock:
-            return self._pts.cols["descriptor"][self._pts.rows(ids)[0]]
+        return self._pts.cols["descriptor"][self._pts.rows(ids)[0]]
 
     def line_descriptors(self, ids: np.ndarray) -> np.ndarray:
         """(k,) ids of live landmarks -> (k,32) LBD descriptors."""
-        with self.lock:
-            return self._lines.cols["descriptor"][self._lines.rows(ids)[0]]
+        return self._lines.cols["descriptor"][self._lines.rows(ids)[0]]
 
     def point_observations(self, ids: np.ndarray | None = None) -> Observations:
         """Observations of the given point landmarks (all when None) that are still alive."""
-        with self.lock:
-            return self._observations(self._pts, self._pobs, ids)
+        return self._observations(self._pts, self._pobs, ids)
 
     def line_observations(self, ids: np.ndarray | None = None) -> Observations:
-        with self.lock:
-            return self._observations(self._lines, self._lobs, ids)
+        return self._observations(self._lines, self._lobs, ids)
 
     @staticmethod
     def _observations(store: LandmarkTable, obs: Columns, ids) -> Observations:
@@ -265,23 +244,20 @@ class LandmarkMap:
 
     def mark_seen(self, point_ids: np.ndarray, line_ids: np.ndarray, frame_index: int) -> None:
         """Stamp the landmarks tracked in frame_index (`drop_unreachable` keeps what was just tracked)."""
-        with self.lock:
-            for store, ids in ((self._pts, point_ids), (self._lines, line_ids)):
-                rows, found = store.rows(ids)
-                store.cols["last_seen_frame"][rows[found]] = frame_index
+        for store, ids in ((self._pts, point_ids), (self._lines, line_ids)):
+            rows, found = store.rows(ids)
+            store.cols["last_seen_frame"][rows[found]] = frame_index
 
     # ---- removing and updating ---------------------------------------------------------------------------
     def remove_points(self, ids: np.ndarray) -> None:
-        with self.lock:
-            rows, found = self._pts.rows(ids)
-            self._pts.cols["alive"][rows[found]] = False
-            self.version += 1
+        rows, found = self._pts.rows(ids)
+        self._pts.cols["alive"][rows[found]] = False
+        self.version += 1
 
     def remove_lines(self, ids: np.ndarray) -> None:
-        with self.lock:
-            rows, found = self._lines.rows(ids)
-            self._lines.cols["alive"][rows[found]] = False
-            self.version += 1
+        rows, found = self._lines.rows(ids)
+        self._lines.cols["alive"][rows[found]] = False
+        self.version += 1
 
     def drop_unreachable(self, frame_index: int, oldest_reachable_kf: int, min_views: int = 2,
                          global_ba_points: int | None = 0) -> tuple[int, int]:
@@ -296,26 +272,25 @@ class LandmarkMap:
         global_ba_points None: there is no global adjustment, 0: it takes every point min_views keyframes see.
         Most landmarks are such: at 900 frames of the town 80 % of the points had one view. Their ids stay valid:
         reads find them gone, as removed ones. Returns the live (points, lines) dropped."""
-        with self.lock:
-            counts = []
-            for store, obs, lines in ((self._pts, self._pobs, False), (self._lines, self._lobs, True)):
-                unreachable = store["alive"] & (store["last_kf"] < oldest_reachable_kf) & (
-                    store["last_seen_frame"] < frame_index - 1)
-                if not lines and global_ba_points is not None:
-                    unreachable &= ~self._in_global_ba(min_views, global_ba_points)
-                counts.append(int(unreachable.sum()))
-                drop = unreachable | ~store["alive"]
-                if not drop.any():
-                    continue
-                store.keep(~drop)
-                keep_obs = store.rows(obs["landmark"])[1]
-                if not keep_obs.all():
-                    kept_before = np.r_[0, np.cumsum(keep_obs)]
-                    self._obs_start[lines] = kept_before[np.asarray(self._obs_start[lines], np.int64)].tolist()
-                    obs.keep(keep_obs)
-            if any(counts):
-                self.version += 1
-            return counts[0], counts[1]
+        counts = []
+        for store, obs, lines in ((self._pts, self._pobs, False), (self._lines, self._lobs, True)):
+            unreachable = store["alive"] & (store["last_kf"] < oldest_reachable_kf) & (
+                store["last_seen_frame"] < frame_index - 1)
+            if not lines and global_ba_points is not None:
+                unreachable &= ~self._in_global_ba(min_views, global_ba_points)
+            counts.append(int(unreachable.sum()))
+            drop = unreachable | ~store["alive"]
+            if not drop.any():
+                continue
+            store.keep(~drop)
+            keep_obs = store.rows(obs["landmark"])[1]
+            if not keep_obs.all():
+                kept_before = np.r_[0, np.cumsum(keep_obs)]
+                self._obs_start[lines] = kept_before[np.asarray(self._obs_start[lines], np.int64)].tolist()
+                obs.keep(keep_obs)
+        if any(counts):
+            self.version += 1
+        return counts[0], counts[1]
 
     def _in_global_ba(self, min_views: int, max_points: int) -> np.ndarray:
         """(n,) bool over the point rows: those a global bundle adjustment with a budget of max_points (0: none)
@@ -334,59 +309,56 @@ class LandmarkMap:
 
     def nbytes(self) -> int:
         """Bytes the map's arrays hold (landmarks, observations, keyframes), capacity included."""
-        with self.lock:
-            return sum(c.nbytes() for c in (self._pts, self._lines, self._pobs, self._lobs, self._kfs))
+        return sum(c.nbytes() for c in (self._pts, self._lines, self._pobs, self._lobs, self._kfs))
 
     def apply_update(self, point_ids=None, point_positions=None, line_ids=None, line_endpoints=None,
                      keyframe_ids=None, keyframe_T_world_cam=None) -> int:
-        """Back-end write, atomic for readers: (k,) ids with (k,3) positions, (l,) ids with (l,2,3) endpoints,
+        """The write of a correction: (k,) ids with (k,3) positions, (l,) ids with (l,2,3) endpoints,
         (f,) keyframe ids with (f,4,4) poses, all world. Removed landmarks are skipped. Returns the new version."""
-        with self.lock:
-            if point_ids is not None and len(point_ids):
-                rows, ok = self._pts.live_rows(point_ids)
-                self._pts.cols["position"][rows[ok]] = np.asarray(point_positions, float).reshape(-1, 3)[ok]
-            if line_ids is not None and len(line_ids):
-                rows, ok = self._lines.live_rows(line_ids)
-                self._lines.cols["endpoints"][rows[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
-            if keyframe_ids is not None and len(keyframe_ids):
-                ids = np.asarray(keyframe_ids, dtype=np.int64)
-                # Re-projected onto SE(3) on every write: workers chain these poses through rigid inverses
-                # (transposes), which turn a rotation's tiny non-orthogonality into a larger one each keyframe;
-                # unchecked it grew x3 a keyframe, to a 1e-3 scale error in the rotation blocks after ~35
-                # keyframes, which squeezed keyframe spacing by a quarter on straight synthetic streets.
-                T = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
-                poses = self._kfs.cols["T_world_cam"]
-                poses.flags.writeable = True
-                try:
-                    poses[ids] = se3.orthonormalize_batch(T)
-                finally:
-                    poses.flags.writeable = False
-            self.version += 1
-            return self.version
+        if point_ids is not None and len(point_ids):
+            rows, ok = self._pts.live_rows(point_ids)
+            self._pts.cols["position"][rows[ok]] = np.asarray(point_positions, float).reshape(-1, 3)[ok]
+        if line_ids is not None and len(line_ids):
+            rows, ok = self._lines.live_rows(line_ids)
+            self._lines.cols["endpoints"][rows[ok]] = np.asarray(line_endpoints, float).reshape(-1, 2, 3)[ok]
+        if keyframe_ids is not None and len(keyframe_ids):
+            ids = np.asarray(keyframe_ids, dtype=np.int64)
+            # Re-projected onto SE(3) on every write: workers chain these poses through rigid inverses
+            # (transposes), which turn a rotation's tiny non-orthogonality into a larger one each keyframe;
+            # unchecked it grew x3 a keyframe, to a 1e-3 scale error in the rotation blocks after ~35
+            # keyframes, which squeezed keyframe spacing by a quarter on straight synthetic streets.
+            T = np.asarray(keyframe_T_world_cam, float).reshape(-1, 4, 4)
+            poses = self._kfs.cols["T_world_cam"]
+            poses.flags.writeable = True
+            try:
+                poses[ids] = se3.orthonormalize_batch(T)
+            finally:
+                poses.flags.writeable = False
+        self.version += 1
+        return self.version
 
     # ---- the one place worker results are written -------------------------------------------------------
     def apply(self, correction: MapCorrection) -> int:
         """Apply a worker's correction (rebasing what moved since its snapshot, see plvo.tracking.corrections):
         keyframe poses, landmarks, graph edges. Returns the new version."""
-        with self.lock:
-            self.edges.extend(correction.edges)
-            self.applied[correction.source] = self.applied.get(correction.source, 0) + 1
-            if not correction.moves_poses:
-                self.version += 1
-                return self.version
-            current = self._kfs["T_world_cam"]
-            new, D, M = corrected_poses(correction, current)
-            kf_ids = np.arange(len(new))
-            # Keyframes the correction left exactly where they were (new == current) are not touched, so that a
-            # window's correction costs what the window holds, not what the whole map holds.
-            changed = np.flatnonzero(np.any(new != current, axis=(1, 2)))
-            cids = np.asarray(correction.keyframe_ids, np.int64)
-            cids = cids[cids < len(current)]
-            pt_ids, pts = self._moved(self._pts, "position", changed, D, correction.point_ids,
-                                      correction.point_positions, cids, M)
-            ln_ids, lns = self._moved(self._lines, "endpoints", changed, D, correction.line_ids,
-                                      correction.line_endpoints, cids, M)
-            return self.apply_update(pt_ids, pts, ln_ids, lns, kf_ids[changed], new[changed])
+        self.edges.extend(correction.edges)
+        self.applied[correction.source] = self.applied.get(correction.source, 0) + 1
+        if not correction.moves_poses:
+            self.version += 1
+            return self.version
+        current = self._kfs["T_world_cam"]
+        new, D, M = corrected_poses(correction, current)
+        kf_ids = np.arange(len(new))
+        # Keyframes the correction left exactly where they were (new == current) are not touched, so that a
+        # window's correction costs what the window holds, not what the whole map holds.
+        changed = np.flatnonzero(np.any(new != current, axis=(1, 2)))
+        cids = np.asarray(correction.keyframe_ids, np.int64)
+        cids = cids[cids < len(current)]
+        pt_ids, pts = self._moved(self._pts, "position", changed, D, correction.point_ids,
+                                  correction.point_positions, cids, M)
+        ln_ids, lns = self._moved(self._lines, "endpoints", changed, D, correction.line_ids,
+                                  correction.line_endpoints, cids, M)
+        return self.apply_update(pt_ids, pts, ln_ids, lns, kf_ids[changed], new[changed])
 
     def _moved(self, store: LandmarkTable, column: str, changed: np.ndarray, D: np.ndarray, ids: np.ndarray,
                refined: np.ndarray, cids: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -414,13 +386,12 @@ class LandmarkMap:
     def window_data(self, kf_ids: np.ndarray, use_lines: bool = True) -> WindowData:
         """A copy of what a bundle adjustment of keyframes kf_ids (W,) ascending needs (see WindowData)."""
         kf_ids = np.asarray(kf_ids, np.int64)
-        with self.lock:
-            T = self._kfs["T_world_cam"][kf_ids].copy()
-            pts = self._window_obs(self._pts, self._pobs, "position", kf_ids)
-            lns = self._window_obs(self._lines, self._lobs, "endpoints", kf_ids) if use_lines else None
-            inside = set(kf_ids.tolist())
-            edges = tuple(e for e in self.edges if e.i in inside and e.j in inside)
-            version = self.version
+        T = self._kfs["T_world_cam"][kf_ids].copy()
+        pts = self._window_obs(self._pts, self._pobs, "position", kf_ids)
+        lns = self._window_obs(self._lines, self._lobs, "endpoints", kf_ids) if use_lines else None
+        inside = set(kf_ids.tolist())
+        edges = tuple(e for e in self.edges if e.i in inside and e.j in inside)
+        version = self.version
         out = dict(kf_ids=kf_ids, T_world_cam=T, point_ids=pts[0], points=pts[1], pt_kf=pts[2], pt_idx=pts[3],
                    pt_uv=pts[4], pt_depth=pts[5], edges=edges, version=version)
         if lns is not None:
@@ -441,34 +412,31 @@ class LandmarkMap:
     def global_data(self, min_views: int = 2) -> GlobalData:
         """A copy of every keyframe, every graph edge and the point observations of landmarks min_views or more
         keyframes see (what the global bundle adjustment after a loop needs)."""
-        with self.lock:
-            lm, kf = self._pobs["landmark"], self._pobs["keyframe"]
-            rows, keep = self._pts.live_rows(lm)
-            counts = np.bincount(rows[keep], minlength=self._pts.n)
-            keep &= counts[rows] >= min_views
-            ids = np.unique(lm[keep])
-            return GlobalData(
-                kf_ids=np.arange(self._kfs.n), T_world_cam=self._kfs["T_world_cam"].copy(), edges=tuple(self.edges),
-                landmark=lm[keep].copy(), keyframe=kf[keep].copy(), measurement=self._pobs["measurement"][keep].copy(),
-                depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][self._pts.rows(ids)[0]],
-                version=self.version)
+        lm, kf = self._pobs["landmark"], self._pobs["keyframe"]
+        rows, keep = self._pts.live_rows(lm)
+        counts = np.bincount(rows[keep], minlength=self._pts.n)
+        keep &= counts[rows] >= min_views
+        ids = np.unique(lm[keep])
+        return GlobalData(
+            kf_ids=np.arange(self._kfs.n), T_world_cam=self._kfs["T_world_cam"].copy(), edges=tuple(self.edges),
+            landmark=lm[keep].copy(), keyframe=kf[keep].copy(), measurement=self._pobs["measurement"][keep].copy(),
+            depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][self._pts.rows(ids)[0]],
+            version=self.version)
 
     def point_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Live point landmark ids (P,) and the keyframe that created each (P,)."""
-        with self.lock:
-            alive = self._pts["alive"]
-            return self._pts["id"][alive], self._pts["first_kf"][alive]
+        alive = self._pts["alive"]
+        return self._pts["id"][alive], self._pts["first_kf"][alive]
 
     def snapshot(self) -> MapSnapshot:
         """A frozen, consistent copy of the live landmarks and all keyframe poses."""
-        with self.lock:
-            pa, la = self._pts["alive"], self._lines["alive"]
-            return MapSnapshot(
-                version=self.version,
-                point_ids=self._pts["id"][pa], point_positions=self._pts["position"][pa].copy(),
-                point_has_depth=self._pts["has_depth"][pa].copy(),
-                line_ids=self._lines["id"][la], line_endpoints=self._lines["endpoints"][la].copy(),
-                line_has_depth=self._lines["has_depth"][la].copy(),
-                keyframe_ids=np.arange(self._kfs.n), keyframe_frames=self._kfs["frame"].copy(),
-                keyframe_T_world_cam=self._kfs["T_world_cam"].copy(),
-            )
+        pa, la = self._pts["alive"], self._lines["alive"]
+        return MapSnapshot(
+            version=self.version,
+            point_ids=self._pts["id"][pa], point_positions=self._pts["position"][pa].copy(),
+            point_has_depth=self._pts["has_depth"][pa].copy(),
+            line_ids=self._lines["id"][la], line_endpoints=self._lines["endpoints"][la].copy(),
+            line_has_depth=self._lines["has_depth"][la].copy(),
+            keyframe_ids=np.arange(self._kfs.n), keyframe_frames=self._kfs["frame"].copy(),
+            keyframe_T_world_cam=self._kfs["T_world_cam"].copy(),
+        )
