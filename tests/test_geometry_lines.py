@@ -346,11 +346,3 @@ def test_point_line_distance_jacobian_matches_central_differences(seed):
     on_line = point_line_distance_and_jacobian(base[None], U[0], W[0])
     assert on_line[0][0] < 1e-9 and np.all(np.isfinite(on_line[1]))
 
-
-def test_jacobians_reachable_from_lines_module():
-    from plvo.geometry.lines import line_residual_jacobians as a
-    from plvo.geometry.lines import line_residuals_and_jacobians_batch as b
-
-    assert a is line_residual_jacobians and b is line_residuals_and_jacobians_batch
-    with pytest.raises(AttributeError):
-        lines.no_such_function  # noqa: B018

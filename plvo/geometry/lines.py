@@ -9,8 +9,7 @@ The orthonormal representation (Bartoli & Sturm 2005, used by Zuo et al. 2017 / 
 minimally by `orth_update` with a 4-vector delta. Projection follows Zhang et al. 2015: the image line is
 l = K_L m with K_L the line projection matrix, and the reprojection residual is the paper's gamma.
 
-Analytic Jacobians live in `line_jacobians.py`; `line_residual_jacobians`, `line_residuals_and_jacobians_batch`
-and `point_line_distance_and_jacobian` are also reachable from here.
+Analytic Jacobians live in `line_jacobians.py`, which builds on this module.
 """
 
 from __future__ import annotations
@@ -223,12 +222,3 @@ def trim_endpoints(K: np.ndarray, L_cam: np.ndarray, segment: np.ndarray) -> np.
     t = np.where(denom > 1e-18, t, np.nan)
     return p0 + t[:, None] * d
 
-
-def __getattr__(name: str):
-    # The Jacobians live in line_jacobians.py, which imports this module; resolving them lazily here keeps
-    # `from plvo.geometry.lines import line_residual_jacobians` working without a circular import.
-    if name in ("line_residual_jacobians", "line_residuals_and_jacobians_batch", "point_line_distance_and_jacobian"):
-        from plvo.geometry import line_jacobians
-
-        return getattr(line_jacobians, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
