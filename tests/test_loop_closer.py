@@ -14,7 +14,8 @@ import pytest
 
 from plvo.config import LoopConfig
 from plvo.geometry import se3
-from plvo.loop.closer import LoopCloser, optimize_pose_graph, thin_scan
+from plvo.loop.closer import LoopCloser, optimize_pose_graph
+from plvo.loop.scans import thin_scan
 from plvo.loop.verification import LoopKeyframe
 from plvo.loop.vocabulary import Vocabulary
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from plvo.config import LoopConfig, RegistrationConfig
-from plvo.loop.closer import LoopCloser, compact_scan, scan_points
+from plvo.loop.closer import LoopCloser
+from plvo.loop.scans import compact_scan, scan_points
 from plvo.loop.verification import LoopKeyframe
 
 K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.2], [0.0, 0.0, 1.0]])

@@ -25,6 +25,8 @@ from plvo.config import LoopConfig, RegistrationConfig, TrackingConfig
 from plvo.errors import PlvoError
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject
+from plvo.lidar.registration import align
+from plvo.loop.scans import scan_points
 from plvo.tracking.pnpl import solve_pnpl
 from plvo.types import DepthPriors, FeatureSet
 
@@ -172,15 +174,9 @@ def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConf
 def _register(query: LoopKeyframe, cand: LoopKeyframe, T_cand_query: np.ndarray, T_cam_velo: np.ndarray | None,
               reg_cfg: RegistrationConfig | None) -> tuple[np.ndarray, float, str]:
     """Refine T_cand_query by registering Q's scan onto C's -> (T, fitness, error message or "")."""
-    try:
-        from plvo.lidar.registration import align
-    except ImportError:  # registration module not present: keep the visual estimate
-        return T_cand_query, 0.0, ""
     T_cv = np.eye(4) if T_cam_velo is None else np.asarray(T_cam_velo, float)
     init = se3.inv(T_cv) @ T_cand_query @ T_cv
     try:
-        from plvo.loop.closer import scan_points
-
         r = align(scan_points(query.scan), scan_points(cand.scan), init, reg_cfg, T_cv)
     except (PlvoError, RuntimeError) as exc:  # a scan too sparse to register is a rejection, not a crash
         return T_cand_query, 0.0, f"scan registration raised: {exc}"
