@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
         report = run_bench(dataset, cfg, stages, args.repeat, RerunFactory(Path(tmp)), info, Reopen(args))
     if "system" in stages:
-        from plvo_app.recording_levels import measure_levels
+        from plvo_app.level_sizes import measure_levels
 
         log.info("bench: one more run, recorded at every level side by side (bytes a frame per level)")
         report["recording_levels"] = measure_levels(dataset, cfg, len(dataset))

@@ -36,7 +36,7 @@ def serve_rerun_web(path: Path, web_port: int) -> int:
     """Serve `path` to Rerun's web viewer: gRPC on web_port + 1, the viewer page on web_port."""
     import rerun as rr
 
-    from plvo_app.rerun_recorder import blueprint
+    from plvo_app.rrd_blueprint import blueprint
 
     if not path.is_file():
         raise RecordingError(f"{path}: no such recording file")

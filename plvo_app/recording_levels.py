@@ -1,4 +1,4 @@
-"""Recording levels: which frames of a run get full detail in the .rrd, and how many bytes a frame each level costs.
+"""Recording levels: which frames of a run get full detail in the .rrd (plvo_app.level_sizes measures their bytes).
 
 Every level keeps the whole-run picture at full length (camera pose, keyframes, graph with zeta, loops, timings and
 counts, the decision log, the map at keyframes, thinned). Detail (the image with every overlay, raw and merged
@@ -18,12 +18,9 @@ written when an event wants it (else dropped): a window reaches `before` frames 
 from __future__ import annotations
 
 import logging
-import math
 import statistics
-import tempfile
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from plvo.errors import RecordingError
@@ -162,51 +159,3 @@ class WarningCapture(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         self.records.append(record)
-
-
-def measure_levels(dataset, config, frames: int | None = None, out_dir: str | Path | None = None,
-                   levels: tuple[str, ...] = LEVELS, keep: bool = False) -> dict[str, dict[str, float]]:
-    """Run `dataset` (its first `frames` frames) once, recorded at every level side by side; per level the bytes
-    of the .rrd and bytes a frame (and what a 4541-frame run would weigh at that rate: a linear extrapolation).
-    keep=True keeps the recordings in `out_dir` (<level>.rrd) instead of a temporary folder.
-
-    For `plvo bench`: e.g. `report["recording_levels"] = measure_levels(dataset, cfg, 300)`.
-    """
-    from plvo.recording import FanOut, RunInfo
-    from plvo.system import System
-    from plvo_app.rerun_recorder import RerunOptions, RerunRecorder
-
-    n = len(dataset) if frames is None else min(int(frames), len(dataset))
-    with tempfile.TemporaryDirectory(prefix="plvo-levels-", dir=out_dir) as tmp:
-        if keep:
-            tmp = str(Path(out_dir or "."))
-        paths = {lv: Path(tmp) / f"{lv}.rrd" for lv in levels}
-        recorders = [RerunRecorder(paths[lv], RerunOptions(detail=DetailOptions(level=lv))) for lv in levels]
-        system = System(config, FanOut(recorders))
-        info = RunInfo(name="measure_levels", sequence=dataset.sequence, calib=dataset.calib,
-                       frame_indices=tuple(dataset.frame_indices[:n]),
-                       gt_T_world_cam=None if dataset.gt_T_world_cam is None else dataset.gt_T_world_cam[:n],
-                       config={}, version="", git_revision="", command_line="measure_levels")
-        system.start(info)
-        try:
-            for i in range(n):
-                system.step(dataset[i])
-            system.finish()
-        finally:
-            system.close()
-        out = {}
-        n_kf = recorders[0]._policy._n_keyframes if recorders else 0
-        for lv, rec in zip(levels, recorders):
-            size = paths[lv].stat().st_size
-            out[lv] = {"frames": n, "bytes": size, "bytes_per_frame": size / max(n, 1),
-                       "mb_per_4541_frames": size / max(n, 1) * 4541 / 1e6, "path": str(paths[lv]) if keep else "",
-                       "keyframes": n_kf, "events": len(rec._policy.events),
-                       "event_windows": rec._policy.n_event_windows}
-        if {"summary", "default", "full"} <= set(out) and n_kf:
-            # The default's event detail is bounded (it does not grow with frames); its stride keyframes grow, each
-            # costing about a keyframe's share of the full level's detail.
-            s, d, f = (out[lv]["bytes"] for lv in ("summary", "default", "full"))
-            stride = DetailOptions().keyframe_stride
-            more = max(0, math.ceil(n_kf * 4541 / n / stride) - math.ceil(n_kf / stride))
-            out["default"]["mb_4541_estimate"] = (s / n * 4541 + (d - s) + more * (f - s) / n_kf) / 1e6
-    return out

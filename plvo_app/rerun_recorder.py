@@ -26,7 +26,6 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from plvo.depth.extract import DepthDebug
 from plvo.geometry.camera import backproject, in_image, project
@@ -38,6 +37,8 @@ from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
 from plvo_app.recording_levels import DetailOptions, DetailPolicy
 from plvo_app.recording_levels import Lazy as _Lazy
 from plvo_app.recording_levels import WarningCapture as _WarningCapture
+from plvo_app.rrd_blueprint import blueprint
+from plvo_app.rrd_compact import compact as compact_file
 from plvo_app.rrd_sink import RrdFileSink
 from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, encode_inputs, file_sha256, machine
 from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
@@ -137,26 +138,6 @@ class RerunOptions:
     graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
     embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
     compact_on_close: bool | None = None  # merge the chunks on close (plvo_app.rrd_compact); None: unless "full"
-
-
-def blueprint() -> rrb.Blueprint:
-    """3D world on the left; the camera image with overlays, time series and the decision log on the right."""
-    plots = rrb.Tabs(
-        rrb.TimeSeriesView(name="tracking", origin="metrics/tracking"),
-        rrb.TimeSeriesView(name="timings (ms)", origin="metrics/time"),
-        rrb.TimeSeriesView(name="back end", origin="metrics/backend"),
-        rrb.TimeSeriesView(name="other counts", origin="metrics", contents=[
-            "+ $origin/**", "- /metrics/time/**", "- /metrics/tracking/**", "- /metrics/backend/**"]),
-    )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(name="3D world", origin="world"),
-            rrb.Vertical(rrb.Spatial2DView(name="camera", origin="world/camera/image"), plots,
-                         rrb.TextLogView(name="log", origin="log"), row_shares=[3, 2, 1]),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
 
 
 def _segments_2d(seg: np.ndarray) -> np.ndarray:
@@ -343,8 +324,6 @@ class RerunRecorder:
         self._sink.close()  # raises RecordingError on a failed write; the file is then kept as it is
         compact = self.opt.compact_on_close
         if compact or (compact is None and not self._policy.everything):
-            from plvo_app.rrd_compact import compact as compact_file
-
             compact_file(self.path)
 
     # ---- helpers -----------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import rerun as rr
 
+from plvo_app.rrd_blueprint import blueprint
 from plvo_app.rrd_reader import open_rrd
 
 log = logging.getLogger(__name__)
@@ -23,8 +24,6 @@ log = logging.getLogger(__name__)
 def write_chunks(out: Path, chunks: Iterable[rr.chunk.Chunk] | rr.chunk.LazyChunkStream, recording_id: str,
                  application_id: str = "plvo") -> None:
     """Write `chunks`, compacted, with plvo's default blueprint, to `out` (which must not be in use)."""
-    from plvo_app.rerun_recorder import blueprint
-
     stream = chunks if isinstance(chunks, rr.chunk.LazyChunkStream) else rr.chunk.LazyChunkStream.from_iter(chunks)
     store = stream.collect(optimize=rr.chunk.OptimizationProfile.LIVE)
     rec = rr.RecordingStream(application_id, recording_id=recording_id)

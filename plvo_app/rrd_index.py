@@ -4,7 +4,7 @@
 of the file, and a frame change decodes a handful of rows.
 
 `IndexedSceneStore` answers the viewer as a SceneStore does (frames, latest, count, name, K, gt, ...), from the
-index; `plvo_app.scene_common.load_rrd` returns one.
+index; `load_rrd` returns one.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 
 from plvo.errors import RecordingError
 from plvo_app.rrd_reader import read_chunks
+from plvo_app.scene_common import ORANGE
 
 _TIMES = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
 CLEAR = "Clear:is_recursive"
@@ -222,10 +223,14 @@ class IndexedSceneStore:
             c = idx.latest(entity, "LineStrips3D:colors", f)
             colors = _colors(idx.value(c[1], c[2], "LineStrips3D:colors")) if c is not None else None
             if colors is None or len(colors) != len(segs):
-                from plvo_app.scene_common import ORANGE
-
                 colors = np.tile(np.array(ORANGE, np.uint8), (len(segs), 1))
             return segs, colors
         if layer == "est":
             return _points(idx.value(b, r, "LineStrips3D:strips").flatten())
         raise KeyError(layer)
+
+
+def load_rrd(path: str | Path) -> IndexedSceneStore:
+    """A plvo .rrd (also one cut short by Ctrl-C) as the viewer's store: indexed, decoded per frame on demand, so a
+    whole sequence opens in seconds in memory about its size."""
+    return IndexedSceneStore(path)

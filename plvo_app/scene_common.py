@@ -1,6 +1,7 @@
 """What both viewers (the Rerun recorder and the viser viewer) draw the same way: colours, thinning, the ground
 truth moved into the estimate's world, the estimated trajectory that follows the back end's refinements; and the
-viewer's SceneStore with `load_rrd`, which fills it from a saved recording (no viser import here)."""
+live viewer's SceneStore (a saved recording is replayed from plvo_app.rrd_index.load_rrd's store; no viser import
+here)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import bisect
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -226,14 +226,6 @@ class SceneStore:
             i = bisect.bisect_left(keys, frame_index)
             if i < len(keys) and keys[i] == frame_index:
                 values[i] = value
-
-
-def load_rrd(path: str | Path):
-    """A plvo .rrd (also one cut short by Ctrl-C) as the viewer's store: indexed, decoded per frame on demand
-    (plvo_app.rrd_index.IndexedSceneStore), so a whole sequence opens in seconds in memory about its size."""
-    from plvo_app.rrd_index import IndexedSceneStore
-
-    return IndexedSceneStore(path)
 
 
 def _pose_from_row(row: dict[str, Any]) -> np.ndarray:

@@ -23,8 +23,9 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, TimingResult, TrackingResult
 from plvo.types import Frame
+from plvo_app.rrd_index import load_rrd
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   load_rrd, simplify_polyline, thin, zeta_colors)
+                                   simplify_polyline, thin, zeta_colors)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 

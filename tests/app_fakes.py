@@ -134,7 +134,7 @@ def write_long_recording(path, n: int = 4541, every: int = 3) -> None:
     import cv2
     import rerun as rr
 
-    from plvo_app.rerun_recorder import blueprint
+    from plvo_app.rrd_blueprint import blueprint
 
     rng = np.random.default_rng(1)
     rec = rr.RecordingStream("plvo", recording_id="long")

@@ -99,7 +99,7 @@ def test_default_detail_on_stride_keyframes_and_around_events(default):
 
 
 def test_replay_store_honours_the_clears(default):
-    from plvo_app.scene_common import load_rrd
+    from plvo_app.rrd_index import load_rrd
 
     store = load_rrd(default.path)
     end = max(_window(LOST_FRAME)) + 1
