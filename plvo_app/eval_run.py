@@ -31,7 +31,8 @@ from plvo.config import ABLATIONS
 from plvo.data.registry import ROOT_ENV, parse_frames
 from plvo.errors import OutputError, PlvoError
 from plvo.eval.kiss import KissOptions
-from plvo.eval.report import build_report, report_markdown, write_report
+from plvo.eval.report import build_report, report_markdown
+from plvo.eval.report_files import write_report
 from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
 from plvo_app.source_args import add_source_arguments
 

@@ -10,7 +10,8 @@ import pytest
 
 from plvo.data.trajectory import write_kitti_poses
 from plvo.eval.kitti_metric import evaluate
-from plvo.eval.report import build_report, report_json, report_markdown, write_report
+from plvo.eval.report import build_report, report_json, report_markdown
+from plvo.eval.report_files import write_report
 from plvo.eval.tasks import RunSpec, SequenceSource, TaskResult
 from plvo.geometry import se3
 

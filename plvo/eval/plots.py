@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from plvo.atomic import atomic_path
 from plvo.eval.kitti_metric import DEVKIT_LENGTHS, SHORT_LENGTHS, SegmentErrors
-from plvo.eval.report import LABELS, Report, pooled_label, save_figure
+from plvo.eval.report import LABELS, Report, pooled_label
 
 SPEED_BINS_MPS = np.arange(2.0, 25.0, 2.0)  # devkit: bins centred every 2 m/s, +-2 m/s wide
 GT_STYLE = {"color": "black", "linewidth": 2.0, "label": "ground truth"}
@@ -25,6 +26,15 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path: Path) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    plt = _pyplot()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
 
 
 def _safe(name: str) -> str:

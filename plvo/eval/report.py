@@ -1,4 +1,5 @@
-"""The paper's Table I from task results: errors per sequence and setting, averaged, as Markdown, JSON and plots.
+"""The paper's Table I from task results: errors per sequence and setting, averaged, as Markdown and JSON
+(plvo.eval.report_files writes them with plvo.eval.plots' figures).
 
 Rows are sequences, columns settings (the plvo ablations, then KISS-ICP). Figures are recomputed from each task
 folder's gt.txt and poses.txt with plvo.eval.kitti_metric, so they equal `plvo eval metric` on the same files.
@@ -12,18 +13,13 @@ devkit segment: their cells read "-", and the short-segment table (10/20/40 m, e
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from plvo import provenance
-from plvo.atomic import atomic_path, write_text_atomic
 from plvo.eval.kitti_metric import (
     DEVKIT_LENGTHS,
     SHORT_LENGTHS,
@@ -238,32 +234,3 @@ def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
                   f"{m['cpu_count']} cores, {m['mem_total_mb']} MB, {m['os']}; load {prov['load_start'][0]:.2f} -> "
                   f"{prov.get('load_end', prov['load_start'])[0]:.2f}; `{prov['command_line']}`", ""]
     return "\n".join(lines)
-
-
-def write_report(report: Report, out_dir: str | os.PathLike[str], plots: bool = True,
-                 started: dict[str, Any] | None = None) -> dict[str, Path]:
-    """Write report.md, report.json and (plots) the PNG figures under out_dir; returns name -> path.
-
-    started: plvo.provenance.start() of the evaluation (its load then); default: made now. report.json carries it,
-    finished now, as "provenance"."""
-    out = Path(out_dir)
-    data = report_json(report)
-    data["provenance"] = provenance.finish(started if started is not None else provenance.start())
-    paths = {"json": out / "report.json", "markdown": out / "report.md"}
-    write_text_atomic(paths["json"], json.dumps(data, indent=1, allow_nan=False) + "\n")
-    write_text_atomic(paths["markdown"], report_markdown(report, data))
-    if plots:
-        from plvo.eval.plots import write_plots
-
-        paths.update(write_plots(report, out / "plots"))
-    return paths
-
-
-def save_figure(fig, path: Path) -> Path:
-    """Save a matplotlib figure as PNG atomically and close it."""
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
