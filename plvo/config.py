@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from plvo.atomic import write_text_atomic
+from plvo.config_ranges import check_ranges
 from plvo.errors import ConfigError
 
 
@@ -300,8 +301,6 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
 def config_from_dict(data: dict[str, Any]) -> SystemConfig:
     """Build a config from nested dicts; unknown keys, wrong types and values out of their range
     (plvo.config_ranges) raise ConfigError naming the dotted key."""
-    from plvo.config_ranges import check_ranges
-
     cfg = _from_dict(SystemConfig, data, "")
     check_ranges(cfg)
     return cfg

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.errors import PlvoError
+from plvo.geometry import se3
+from plvo.geometry.camera import in_image, project
 
 
 def _check(name: str, arr: np.ndarray, shape: tuple) -> np.ndarray:
@@ -121,8 +123,6 @@ class BAResult:
 
 
 def _rand_rot(rng: np.random.Generator, sigma: float) -> np.ndarray:
-    from plvo.geometry import se3
-
     return se3.so3_exp(rng.normal(0.0, sigma, 3))
 
 
@@ -138,9 +138,6 @@ def make_synthetic_problem(
     pixel_noise > 0; point depths stay exact). relative-pose factors link adjacent keyframes
     with the true relative pose and zeta = 1. The first keyframe is fixed.
     """
-    from plvo.geometry import se3
-    from plvo.geometry.camera import in_image, project
-
     rng = np.random.default_rng(seed)
     K = np.array([[707.1, 0.0, 601.9], [0.0, 707.1, 183.1], [0.0, 0.0, 1.0]])
     w, h = 1226, 370

@@ -22,6 +22,7 @@ from plvo.data.folder import FolderDataset, is_folder
 from plvo.data.kitti import RAW_DRIVE, KittiOdometry, KittiRaw
 from plvo.data.rosbag import RosbagDataset, is_bag
 from plvo.errors import DatasetError
+from plvo.lidar.beams import BeamResampled
 
 ROOT_ENV = "KITTI_ROOT"
 KITTI_DOWNLOAD = "https://www.cvlibs.net/datasets/kitti/eval_odometry.php"
@@ -129,8 +130,6 @@ def open_dataset(
     """
     dataset = _open(root, sequence, frames, camera, options)
     if options is not None and options.beams is not None:
-        from plvo.lidar.beams import BeamResampled
-
         return BeamResampled(dataset, options.beams)
     return dataset
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plvo.config import LineConfig, OrbConfig
+from plvo.features.extract import extract_features
 from plvo.types import FeatureSet
 
 
@@ -31,8 +32,6 @@ class FeaturesCore:
     """A frame's image in, its features and the seconds they took out (what Frame.features / features_s hold)."""
 
     def __init__(self, orb: OrbConfig, lines: LineConfig, points_only: bool):
-        from plvo.features.extract import extract_features
-
         self._extract = extract_features
         self._args = (orb, lines, points_only)
 

@@ -30,6 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.config import SystemConfig
+from plvo.depth.extract import extract_depth_priors
+from plvo.features.extract import extract_features
+from plvo.features.matching import match_lines, match_points
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.tracking import keyframes as kfp
@@ -111,11 +114,6 @@ class _FrameState:
 
 
 def _default_stages():
-    # Imported lazily so that the tracker's own logic can be used (and tested) with other stages.
-    from plvo.depth.extract import extract_depth_priors
-    from plvo.features.extract import extract_features
-    from plvo.features.matching import match_lines, match_points
-
     return extract_features, match_points, match_lines, extract_depth_priors
 
 
