@@ -53,7 +53,7 @@ def _run(root: str, seq: str, setting: str) -> dict:
     from plvo.eval.kitti_metric import evaluate_sequence
     from plvo.eval.revisits import detection_stats
     from plvo.eval.tasks import anchor, metrics_dict
-    from plvo.system import run_dataset
+    from plvo.run import run_dataset
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": SETTINGS[setting]})
     ds = KittiOdometry(root, seq)

@@ -112,7 +112,7 @@ def test_frame_selection_and_pickling(town, tmp_path):
 
 
 def _compare_runs(ref, bag) -> float:
-    from plvo.system import run_dataset
+    from plvo.run import run_dataset
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
     ref_run, bag_run = run_dataset(ref, cfg), run_dataset(bag, cfg)

@@ -72,7 +72,8 @@ def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeyp
     not extract any feature itself once the stages are built."""
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.system import System, run_system
+    from plvo.run import run_system
+    from plvo.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
@@ -129,7 +130,8 @@ def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth
     thread), to the last bit."""
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.system import System, run_system
+    from plvo.run import run_system
+    from plvo.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     calls = _extraction_threads(monkeypatch)
@@ -164,13 +166,13 @@ def test_the_look_ahead_runs_at_a_lower_priority(synth_sequence_factory):
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     system = System(merge(SystemConfig(), {"loop": {"enabled": True}}), calib=ds.calib)
     seen = []
-    start = system._start_features  # the reading thread's call for each frame (the deployed mode's)
+    start = system._lookahead.start  # the reading thread's call for each frame (the deployed mode's)
 
     def spy(frame):
         seen.append(_nice())
         return start(frame)
 
-    system._start_features = spy
+    system._lookahead.start = spy
     mine = _nice()
     try:
         system.wait_ready()

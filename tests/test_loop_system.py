@@ -63,7 +63,7 @@ class _Collect:
 @pytest.fixture(scope="module")
 def run(synth_sequence_factory):
     from plvo.data.kitti import KittiOdometry
-    from plvo.system import run_dataset
+    from plvo.run import run_dataset
 
     root = synth_sequence_factory(FRAMES, seed=SEED, speed_mps=SPEED, loop=True)
     ds = KittiOdometry(root, "00", frames=slice(0, RUN_FRAMES))

@@ -126,7 +126,8 @@ def test_workers_hold_no_map_and_every_write_goes_through_apply(synth_sequence_f
         for i in range(len(ds)):
             system.step(ds[i])
         system.finish()
-        for worker in (system._backend, system._loop):
+        assert len(system.workers) == 2  # back end and loop closer (no features process with thread workers)
+        for worker in system.workers:
             assert not any(isinstance(v, LandmarkMap) for v in vars(worker._core).values())
     finally:
         system.close()
@@ -134,7 +135,7 @@ def test_workers_hold_no_map_and_every_write_goes_through_apply(synth_sequence_f
 
 
 def _run_poses(ds, cfg) -> np.ndarray:
-    from plvo.system import run_dataset
+    from plvo.run import run_dataset
 
     return run_dataset(ds, cfg).poses
 
@@ -190,14 +191,15 @@ def test_the_back_end_lag_decides_where_the_tracker_waits(synth_sequence_factory
     made, whichever is first. With the next keyframe within the lag (6, the default), the result is applied after
     that keyframe's frame was tracked, so the frame's tracking and depth priors run while the back end works; with
     a lag equal to the keyframe spacing (3) the tracker waited for the result before tracking that frame. Each
-    keyframe tracked before its predecessor's result is solved again on the refined map (System._relocalise)."""
+    keyframe tracked before its predecessor's result is solved again on the refined map (BackendStage.catch_up)."""
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.system import System
     from plvo.tracking.frontend import Frontend
+    from plvo.worker_stages import BackendStage
 
     events: list[tuple[str, int]] = []
-    track, apply_backend = Frontend.track, System._apply_backend
+    track, apply_backend = Frontend.track, BackendStage.apply
 
     def spy_track(self, frame, *args, **kwargs):
         out = track(self, frame, *args, **kwargs)
@@ -209,7 +211,7 @@ def test_the_back_end_lag_decides_where_the_tracker_waits(synth_sequence_factory
         return apply_backend(self, out)
 
     monkeypatch.setattr(Frontend, "track", spy_track)
-    monkeypatch.setattr(System, "_apply_backend", spy_apply)
+    monkeypatch.setattr(BackendStage, "apply", spy_apply)
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     system = System(merge(SystemConfig(), {"backend": {"executor": "thread", "max_lag_frames": lag},
                                            "loop": {"enabled": False}}))
@@ -228,4 +230,4 @@ def test_the_back_end_lag_decides_where_the_tracker_waits(synth_sequence_factory
         assert after_tracking == (b - a < lag), (lag, a, b, keyframes)
     # A keyframe tracked before the previous one's result was applied is solved again on the refined map.
     late = sum(order[("applied", a)] > order[("tracked", b)] for a, b in pairs)
-    assert system.loop_stats["relocalised"] == late, (system.loop_stats, late)
+    assert system.loop_stats.relocalised == late, (system.loop_stats, late)

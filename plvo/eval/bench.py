@@ -329,7 +329,8 @@ def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None
     from the first frame read to the workers' last result: what plvo-viz's timings.json reports. Everything before
     it, from `setup_started` (time.perf_counter(); default: this call) on, is the run's setup_s."""
     setup_started = time.perf_counter() if setup_started is None else setup_started
-    from plvo.system import System, run_system
+    from plvo.run import run_system
+    from plvo.system import System
 
     tap = TimingTap(recorder if recorder is not None else NullRecorder())
     children0 = _cpu_s(resource.RUSAGE_CHILDREN)  # worker processes are counted here once they are reaped

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -162,7 +163,7 @@ def _report(dataset, system, tap: SoakTap, poses: np.ndarray, t0: float, wall: f
                              + (len(dataset),)),
         "tracking_losses": tap.lost, "n_keyframes": system.map.n_keyframes,
         "corrections": [_with_errors(c, tap, gt, index) for c in system.corrections],
-        "loop_stats": dict(system.loop_stats),
+        "loop_stats": dataclasses.asdict(system.loop_stats),
         "loops": _loops(tap, gt, index) if gt is not None else None,
         "loop_detection": _detection(tap, gt, index, system.config) if gt is not None else None,
         "timings": system.timing_summary(),

@@ -153,7 +153,7 @@ def plvo_config(spec: RunSpec):
 
 def run_pipeline(dataset: Dataset, config) -> MethodOutput:
     """Dataset + SystemConfig -> plvo's cam0 poses (N,4,4) T_world_cam0 and per-stage timings."""
-    from plvo.system import run_dataset
+    from plvo.run import run_dataset
 
     out = run_dataset(dataset, config)
     return MethodOutput(np.asarray(out.poses, dtype=np.float64), dict(out.timings))

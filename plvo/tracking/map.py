@@ -98,7 +98,6 @@ class LandmarkMap:
         self.edges: list[GraphEdge] = []
         # per keyframe, the number of observation rows when it was made (points, lines): see _window_obs
         self._obs_start: dict[bool, list[int]] = {False: [], True: []}
-        self.applied: dict[str, int] = {}  # corrections applied, by source
 
     # ---- sizes -------------------------------------------------------------------------------------------
     @property
@@ -342,7 +341,6 @@ class LandmarkMap:
         """Apply a worker's correction (rebasing what moved since its snapshot, see plvo.tracking.corrections):
         keyframe poses, landmarks, graph edges. Returns the new version."""
         self.edges.extend(correction.edges)
-        self.applied[correction.source] = self.applied.get(correction.source, 0) + 1
         if not correction.moves_poses:
             self.version += 1
             return self.version
