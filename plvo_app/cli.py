@@ -13,10 +13,13 @@ import importlib
 import logging
 import os
 import sys
+import tempfile
+import traceback
 from collections.abc import Sequence
 
 from plvo.errors import PlvoError
 from plvo.heap import keep_freed_memory
+from plvo_app import cmd_viz
 from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt
 
 # One OpenBLAS thread unless the user chose otherwise: set here, before any subcommand imports numpy. OpenBLAS's
@@ -66,9 +69,6 @@ def _guarded(func, args) -> int:
 
 
 def _write_traceback() -> str:
-    import tempfile
-    import traceback
-
     try:
         fd, path = tempfile.mkstemp(prefix="plvo-traceback-", suffix=".log")
         with os.fdopen(fd, "w") as f:
@@ -99,8 +99,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def main_viz(argv: Sequence[str] | None = None) -> int:
-    from plvo_app import cmd_viz
-
     parser = argparse.ArgumentParser(prog="plvo-viz", description=cmd_viz.__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     cmd_viz.add_arguments(parser)

@@ -13,6 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from plvo.errors import RecordingError
 from plvo_app.reproduce import parse_set, reproduce
 
 
@@ -29,8 +30,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.keep is not None and args.keep.exists():
-        from plvo.errors import RecordingError
-
         raise RecordingError(f"{args.keep}: already exists; plvo reproduce never overwrites a file")
     report = reproduce(args.file, args.root, parse_set(args.set), args.tol_m, args.tol_deg, args.keep)
     for line in report.lines(args.tol_m, args.tol_deg):

@@ -1,5 +1,7 @@
 """Inspect a saved .rrd recording in the viser web viewer (or the Rerun web viewer) without rerunning the pipeline."""
 
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
+# imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import argparse

@@ -10,6 +10,8 @@ likewise; a run that fails (a write, a worker, an unexpected error) or tracks le
 "failed" with its reason and says so on one line. The faults and what each leaves: docs/faults.md.
 """
 
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
+# imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import argparse
@@ -20,6 +22,7 @@ import shlex
 import subprocess
 import sys
 import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
@@ -76,8 +79,6 @@ def git_revision() -> str:
 
 
 def plvo_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("plvo")
     except PackageNotFoundError:

@@ -7,6 +7,8 @@ Writes DIR/orb.npz, DIR/lbd.npz (load with plvo.loop.vocabulary.Vocabulary.load)
 were trained on). Only descriptors are stored, never images. Point LoopConfig.vocab_dir at DIR to use them.
 """
 
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
+# imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import argparse

@@ -8,6 +8,8 @@ tolerance, and the first stage result that changed (feature counts, matches, inl
 decisions, back-end and loop counts; timings are not compared).
 """
 
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
+# imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import json
@@ -25,6 +27,7 @@ from plvo.errors import ConfigError, RecordingError
 from plvo.geometry.se3 import inv, rotation_angle
 from plvo.types import Frame
 from plvo_app.rrd_reader import RrdData, open_rrd, read_rrd
+from plvo_app.scene_common import _pose_from_row
 from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, calib_from_dict, decode_inputs, file_sha256, input_files
 
 log = logging.getLogger(__name__)
@@ -220,8 +223,6 @@ def rerun_inputs(dataset, cfg: SystemConfig, out: Path) -> None:
 
 
 def _poses(data: RrdData) -> dict[int, np.ndarray]:
-    from plvo_app.scene_common import _pose_from_row
-
     return {f: _pose_from_row(row) for f, row in data.rows("/world/camera")}
 
 

@@ -16,6 +16,7 @@ from typing import Any
 import rerun as rr
 
 from plvo.errors import RecordingError
+from plvo_app.rrd_sink import complete_prefix
 
 log = logging.getLogger(__name__)
 _SKIP = {"rerun.controls.RowId", "frame", "log_time", "sensor_time"}
@@ -127,8 +128,6 @@ def _read_chunks(p: Path, content: list[str] | None = None) -> list:
 
 def _read_cut_short(p: Path, exc: Exception, content: list[str] | None = None) -> list:
     """A recording whose last message is cut off (a process killed mid-write): read its complete messages."""
-    from plvo_app.rrd_sink import complete_prefix
-
     size, keep = p.stat().st_size, complete_prefix(p)
     if not 0 < keep < size:
         raise RecordingError(f"{p}: not a readable Rerun recording ({exc})") from None

@@ -12,6 +12,7 @@ import hashlib
 import os
 import platform
 import sys
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -64,8 +65,6 @@ def machine() -> dict[str, str]:
            platform.machine(), "cpus": str(os.cpu_count()), "python": sys.version.split()[0],
            "numpy": np.__version__, "opencv": cv2.__version__,
            "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "")}
-    from importlib.metadata import PackageNotFoundError, version
-
     for name, dist in (("gtsam", "gtsam"), ("open3d", "open3d"), ("scipy", "scipy"), ("poselib", "poselib"),
                        ("rerun", "rerun-sdk")):
         try:

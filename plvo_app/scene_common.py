@@ -17,6 +17,7 @@ import numpy as np
 from plvo.geometry.se3 import inv, transform_points
 from plvo.recording import RunInfo
 from plvo.results import EDGE_LOOP
+from plvo_app.guards import deferred_signals
 
 GREY, GREEN, RED, ORANGE, CYAN, MAGENTA = (170, 170, 170), (40, 220, 60), (230, 50, 50), (255, 150, 20), \
     (40, 200, 230), (255, 0, 255)
@@ -242,8 +243,6 @@ def wait_for_interrupt() -> None:
 
     The signal is taken by a handler rather than as a KeyboardInterrupt, which could land before a `try` is
     entered (and a viewer quit this way would then report "interrupted")."""
-    from plvo_app.guards import deferred_signals
-
     if threading.current_thread() is not threading.main_thread():
         raise RuntimeError("wait_for_interrupt needs the main thread (signals)")
     with deferred_signals("") as held:

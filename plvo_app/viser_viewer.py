@@ -9,6 +9,7 @@ shows (never what is recorded) so that it stays responsive on a whole sequence; 
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections import defaultdict, deque
@@ -23,6 +24,7 @@ import viser.transforms as vtf
 from plvo.recording import RunInfo
 from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, TimingResult, TrackingResult
 from plvo.types import Frame
+from plvo_app.guards import deferred_signals
 from plvo_app.rrd_index import load_rrd
 from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
                                    simplify_polyline, thin, zeta_colors)
@@ -480,10 +482,6 @@ class TrailView:
 def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:
     """Keep the viewer up until Ctrl-C or SIGTERM (plvo view), then close it: quitting is not an error, so the
     signal is held from before the address is printed until the viewer is closed (no KeyboardInterrupt)."""
-    import sys
-
-    from plvo_app.guards import deferred_signals
-
     with deferred_signals("") as held:
         held.what = None
         print(f"{what}: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
