@@ -1,21 +1,19 @@
 """Evaluation runs at scale: one task per (sequence, setting), fanned out over local processes or Ray.
 
 `build_specs` makes the RunSpecs (plvo under each ablation, KISS-ICP beside it); `execute(specs, out, workers=N)`
-runs them in this process for one worker, else over a ProcessPoolExecutor whose workers write their own task
+runs them in this process for one worker, else over a local process pool whose workers write their own task
 folders; `execute(..., ray="local" | ADDRESS)` sends one Ray task per spec (a local Ray with `workers` CPUs, or
 `ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster without a shared file system
-works as long as every node sees the datasets under the same paths and can import plvo. Whatever the fan-out,
-the results are the same TaskResults, read back from the folders (see plvo.eval.tasks).
+works as long as every node sees the datasets under the same paths and can import plvo (plvo.fanout). Whatever the
+fan-out, the results are the same TaskResults, read back from the folders (see plvo.eval.tasks).
 """
 
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import replace
 from typing import Any
 
@@ -40,6 +38,7 @@ from plvo.eval.tasks import (  # noqa: F401  (re-exported: the runner is the pub
     run_pipeline,
     write_task,
 )
+from plvo.fanout import ray_unordered, worker_pool  # noqa: F401  (worker_pool: also plvo.eval.bench's)
 
 log = logging.getLogger(__name__)
 
@@ -124,29 +123,9 @@ def _execute_processes(
     return [results[k] for k in range(len(specs))]
 
 
-def worker_pool(workers: int) -> ProcessPoolExecutor:
-    """The local process pool of a sweep."""
-    # spawn, not fork: kiss_icp and OpenCV start thread pools that a forked child must not inherit
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_die_with_parent)
-
-
-def _die_with_parent() -> None:
-    """In a pool worker: end when the `plvo eval run` process does. A killed parent otherwise leaves its workers
-    finishing their sequences (minutes of two cores each), writing into a folder nobody reads any more."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        pr_set_pdeathsig = 1
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
-
-
 def _execute_ray(
     specs: Sequence[RunSpec], out_dir: str, address: str, workers: int, notify: Callable[[TaskResult], None]
 ) -> list[TaskResult]:
-    from plvo.ray_pool import ray_unordered
-
     results: dict[int, TaskResult] = {}
     for k, output, exc in ray_unordered(execute_task, [(spec,) for spec in specs], address, workers, PlvoError):
         if exc is not None:

@@ -21,6 +21,7 @@ from pathlib import Path
 from plvo.data.synth.twin.follow import load_followed
 from plvo.data.synth.twin.generate import TWIN_VERSION, TwinSettings, check_twin_request, generate_twin
 from plvo.errors import SynthError
+from plvo.fanout import ray_unordered, worker_pool
 
 log = logging.getLogger(__name__)
 
@@ -151,8 +152,6 @@ def ensure_twins(jobs: Sequence[TwinJob], root: str | Path, workers: int = 1, ra
 
 
 def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, TwinDone]:
-    from plvo.eval.runner import worker_pool  # spawn, and workers die with the parent
-
     out: dict[int, TwinDone] = {}
     with multiprocessing.get_context("spawn").Manager() as manager:
         q = manager.Queue()
@@ -178,8 +177,6 @@ def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, 
 
 
 def _ray(jobs, todo, frames, root, address, workers, progress, total, notify) -> dict[int, TwinDone]:
-    from plvo.ray_pool import ray_unordered
-
     out: dict[int, TwinDone] = {}
     done_frames = 0
     # Each Ray worker writes into the same root: a cluster needs it on a shared file system.

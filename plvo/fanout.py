@@ -1,13 +1,39 @@
-"""Fan work out over Ray: a local Ray started for the call (`address="local"`) or a cluster's (`ray.init(address=)`).
+"""Fan work out: over local processes, or over Ray (a local Ray started for the call, or a cluster's).
 
-Used by `plvo eval run --ray` and `plvo synth --twins ... --ray`; both hand in a picklable function and its
-argument tuples and take the results as they finish, on the driver.
+Used by the evaluation (plvo.eval.runner) and the twin batch generator (plvo.data.synth.twin.batch); both hand in a
+picklable function and its argument tuples and take the results as they finish, on the driver.
+
+Local processes are spawned (not forked) and end when their parent does. Ray tasks take one CPU
+each and are not retried.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import sys
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
+
+
+
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """A local process pool: spawned workers that end with this process."""
+    # spawn, not fork: kiss_icp and OpenCV start thread pools that a forked child must not inherit
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_die_with_parent)
+
+
+def _die_with_parent() -> None:
+    """In a pool worker: end when the parent (`plvo eval run`, `plvo synth`) does. A killed parent otherwise
+    leaves its workers finishing their tasks (minutes of two cores each), writing into a folder nobody reads."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
 
 
 def ray_unordered(fn: Callable, calls: Sequence[tuple], address: str, workers: int,
