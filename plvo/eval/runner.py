@@ -3,9 +3,11 @@
 `build_specs` makes the RunSpecs (plvo under each ablation, KISS-ICP beside it); `execute(specs, out, workers=N)`
 runs them in this process for one worker, else over a local process pool whose workers write their own task
 folders; `execute(..., ray="local" | ADDRESS)` sends one Ray task per spec (a local Ray with `workers` CPUs, or
-`ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster without a shared file system
-works as long as every node sees the datasets under the same paths and can import plvo (plvo.fanout). Whatever the
-fan-out, the results are the same TaskResults, read back from the folders (see plvo.eval.tasks).
+`ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster needs no shared output folder; its
+nodes must see the datasets (and any config or calibration file) under the same paths, which is checked on every
+node before the first task, and be able to import plvo. A task whose node dies is run again by Ray elsewhere
+(plvo.fanout). Whatever the fan-out, the results are the same TaskResults, read back from the folders (see
+plvo.eval.tasks).
 """
 
 from __future__ import annotations
@@ -94,6 +96,9 @@ def execute(
             results[k] = previous
         else:
             todo.append(k)
+    if resume:
+        log.info("--resume: %d of %d tasks finished already; running the other %d", len(results), len(specs),
+                 len(todo))
     notify = on_result or (lambda r: None)
     for r in results.values():
         notify(r)
@@ -127,7 +132,9 @@ def _execute_ray(
     specs: Sequence[RunSpec], out_dir: str, address: str, workers: int, notify: Callable[[TaskResult], None]
 ) -> list[TaskResult]:
     results: dict[int, TaskResult] = {}
-    for k, output, exc in ray_unordered(execute_task, [(spec,) for spec in specs], address, workers, PlvoError):
+    reads = sorted({p for s in specs for p in (s.source.root, s.source.calib, s.config_path) if p})
+    for k, output, exc in ray_unordered(execute_task, [(spec,) for spec in specs], address, workers, PlvoError,
+                                        reads=reads, hint="put the data on a path every node sees"):
         if exc is not None:
             output = TaskOutput(specs[k], "failed", error=f"ray: {type(exc).__name__}: {exc}")
         results[k] = write_task(output, out_dir)

@@ -2,8 +2,10 @@
 
 A twin already under the root with the same settings and TWIN_VERSION (its gt/scene.json says so) is kept; any
 other is generated into a staging folder and renamed into place when every file is written (twin.generate), so
-an interrupted batch leaves finished twins and no half-written one. Progress comes back frame by frame from
-local workers (a queue) and twin by twin from Ray.
+an interrupted batch leaves finished twins and no half-written one, and a twin whose Ray node died is carried on
+in its stage by the retried task. Progress comes back frame by frame from local workers (a queue) and twin by twin
+from Ray. On a Ray cluster every node writes into the root, so it must be one folder that every node sees (checked
+before any twin is started, as are the followed pose files; plvo.fanout).
 """
 
 from __future__ import annotations
@@ -179,8 +181,10 @@ def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, 
 def _ray(jobs, todo, frames, root, address, workers, progress, total, notify) -> dict[int, TwinDone]:
     out: dict[int, TwinDone] = {}
     done_frames = 0
-    # Each Ray worker writes into the same root: a cluster needs it on a shared file system.
-    for n, result, exc in ray_unordered(_run_local, [(jobs[k], root) for k in todo], address, workers, SynthError):
+    follows = sorted({jobs[k].settings.follow for k in todo})
+    for n, result, exc in ray_unordered(_run_local, [(jobs[k], root) for k in todo], address, workers, SynthError,
+                                        reads=follows, writes=[root],
+                                        hint="put the pose files and the twins' root on a path every node sees"):
         k = todo[n]
         out[k] = result if exc is None else TwinDone(jobs[k].sequence, 0, 0.0, False,
                                                      f"ray: {type(exc).__name__}: {exc}")
