@@ -52,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_MODELS)}")
     twin.add_argument("--workers", type=int, default=1, help="--twins: local worker processes (or CPUs of local Ray)")
     twin.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                      help="--twins: fan out over Ray ('local' or a cluster address; the output on a shared disk)")
+                      help="--twins: fan out over Ray ('local' or a cluster address; --out and the pose files on a "
+                           "path every node sees; a twin whose node dies is carried on by another)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -78,7 +78,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="local worker processes (or CPUs of a local Ray); 1 runs in this process (default: %(default)s)")
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                   help="fan out over Ray: a cluster ADDRESS for ray.init, or 'local' (also the bare flag)")
+                   help="fan out over Ray: a cluster ADDRESS for ray.init, or 'local' (also the bare flag); a task "
+                        "whose node dies is run again on another; the data must be on a path every node sees")
     p.add_argument("--resume", action="store_true", help="keep finished task folders of the same spec, run the rest")
     p.add_argument("--no-plots", action="store_true", help="write the tables only")
 
