@@ -15,6 +15,7 @@ import os
 import sys
 import tempfile
 import traceback
+import warnings
 from collections.abc import Sequence
 
 from plvo.errors import PlvoError
@@ -48,6 +49,14 @@ def _setup_logging(verbose: bool) -> None:
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    warnings.showwarning = _warning_line
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning as one log line (the default prints the warning's source line after it), e.g. the
+    resource tracker's when it had to be started again after it died."""
+    text = str(message).splitlines()[0] if str(message) else ""
+    logging.getLogger("py.warnings").warning("%s: %s", category.__name__, text)
 
 
 def _guarded(func, args) -> int:

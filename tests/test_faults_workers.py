@@ -18,8 +18,8 @@ from pathlib import Path
 
 import psutil
 import pytest
-
 from faults_table import VIZ, fault, one_error_line, read_stderr_until, viz_env
+
 from plvo_app.rrd_reader import read_rrd
 
 pytestmark = pytest.mark.timeout(180)
@@ -158,3 +158,17 @@ def test_a_killed_resource_tracker_is_not_noticed(synth_seq, tmp_path):
     assert "Traceback" not in err and "resource_tracker." not in err and "resource_tracker:" not in err, err[-3000:]
     assert err.strip().splitlines()[-1].startswith(row.message)
     assert json.loads((tmp_path / "out" / "timings.json").read_text())["status"] == "complete"
+
+
+def test_a_resource_tracker_lost_before_a_worker_starts_is_one_warning_line(tmp_path):
+    """Killed before a worker process is spawned, the tracker is started again by multiprocessing, which warns:
+    in plvo's commands that is one log line, not a warning followed by its source line."""
+    script = ("import os, signal, time, multiprocessing as mp; from multiprocessing import resource_tracker as rt; "
+              "from plvo_app.cli import _setup_logging; _setup_logging(False); rt.ensure_running(); "
+              "os.kill(rt._resource_tracker._pid, signal.SIGKILL); time.sleep(0.2); "
+              "p = mp.get_context('spawn').Process(target=time.sleep, args=(0,)); p.start(); p.join()")
+    proc = subprocess.run([VIZ[0], "-c", script], cwd=tmp_path, env=viz_env(), capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("WARNING py.warnings: UserWarning: resource_tracker: "), lines
