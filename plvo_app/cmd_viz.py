@@ -28,10 +28,17 @@ from pathlib import Path
 from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
 from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
-from plvo_app.source_args import add_source_arguments, source_options
 from plvo_app.guards import Terminated, check_port, deferred_signals, exit_status_of
-from plvo_app.run_outputs import (MIN_TRACKED_SHARE, Outputs, RunLog, check_outputs, remove_made, tracked_summary,
-                                  write_json)
+from plvo_app.run_outputs import (
+    MIN_TRACKED_SHARE,
+    Outputs,
+    RunLog,
+    check_outputs,
+    remove_made,
+    tracked_summary,
+    write_json,
+)
+from plvo_app.source_args import add_source_arguments, source_options
 
 log = logging.getLogger(__name__)
 
@@ -330,7 +337,8 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
     if status == "complete":
         tracked, share = tracked_summary(system.frames_done, system.n_lost)
         if share < MIN_TRACKED_SHARE:
-            reason = f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), below {MIN_TRACKED_SHARE:.0%}"
+            reason = (f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), "
+                      f"below {MIN_TRACKED_SHARE:.0%}")
             error = RunFailed(f"{reason}: results marked failed, no poses.txt")
     if status == "complete" and error is None:
         try:

@@ -27,8 +27,8 @@ from plvo.errors import ConfigError, RecordingError
 from plvo.geometry.se3 import inv, rotation_angle
 from plvo.types import Frame
 from plvo_app.rrd_reader import RrdData, open_rrd, read_rrd
+from plvo_app.run_identity import calib_from_dict, decode_inputs, file_sha256, input_files
 from plvo_app.scene_common import _pose_from_row
-from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, calib_from_dict, decode_inputs, file_sha256, input_files
 
 log = logging.getLogger(__name__)
 

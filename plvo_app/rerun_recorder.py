@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections import defaultdict, deque
+from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import timedelta
@@ -31,8 +31,17 @@ from plvo.depth.extract import DepthDebug
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
-from plvo.results import EDGE_COVISIBILITY, EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult
-from plvo.results import TimingResult, TrackingResult
+from plvo.results import (
+    EDGE_COVISIBILITY,
+    EDGE_LOOP,
+    GraphResult,
+    KeyframeResult,
+    LoopResult,
+    MapResult,
+    MetricsResult,
+    TimingResult,
+    TrackingResult,
+)
 from plvo.types import DepthPriors, FeatureMatches, FeatureSet, Frame
 from plvo_app.recording_levels import DetailOptions, DetailPolicy
 from plvo_app.recording_levels import Lazy as _Lazy
@@ -41,8 +50,20 @@ from plvo_app.rrd_blueprint import blueprint
 from plvo_app.rrd_compact import compact as compact_file
 from plvo_app.rrd_sink import RrdFileSink
 from plvo_app.run_identity import INPUT_IMAGE, INPUT_SCAN, encode_inputs, file_sha256, machine
-from plvo_app.scene_common import (CYAN, GREEN, GREY, MAGENTA, ORANGE, RED, EstimateTrail, depth_colors,
-                                   gt_in_estimate_world, inlier_colors, thin, zeta_colors)
+from plvo_app.scene_common import (
+    CYAN,
+    GREEN,
+    GREY,
+    MAGENTA,
+    ORANGE,
+    RED,
+    EstimateTrail,
+    depth_colors,
+    gt_in_estimate_world,
+    inlier_colors,
+    thin,
+    zeta_colors,
+)
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +135,8 @@ E = {
     "line_patches": "world/camera/image/line_patches", "planes": "world/depth/planes", "lidar": "world/lidar",
     "scan": "world/lidar/scan", "depth_points": "world/depth/points", "depth_lines": "world/depth/lines",
     "map_points": "world/map/points", "map_lines": "world/map/lines", "keyframes": "world/keyframes",
-    "graph": "world/graph", "graph_recent": "world/graph/recent", "loops": "world/loops", "est": "world/trajectory/est", "gt": "world/trajectory/gt",
+    "graph": "world/graph", "graph_recent": "world/graph/recent", "loops": "world/loops",
+    "est": "world/trajectory/est", "gt": "world/trajectory/gt",
 }
 assert set(E.values()) <= set(ENTITIES)
 

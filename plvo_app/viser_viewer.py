@@ -26,8 +26,17 @@ from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, Tim
 from plvo.types import Frame
 from plvo_app.guards import deferred_signals
 from plvo_app.rrd_index import load_rrd
-from plvo_app.scene_common import (GREEN, ORANGE, EstimateTrail, SceneStore, depth_colors, gt_in_estimate_world,
-                                   simplify_polyline, thin, zeta_colors)
+from plvo_app.scene_common import (
+    GREEN,
+    ORANGE,
+    EstimateTrail,
+    SceneStore,
+    depth_colors,
+    gt_in_estimate_world,
+    simplify_polyline,
+    thin,
+    zeta_colors,
+)
 
 __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer", "load_rrd"]  # load_rrd: replay
 
@@ -103,7 +112,8 @@ class ViserViewer:
         gui = self.server.gui
         gui.configure_theme(control_width="medium")
         with gui.add_folder("Playback"):
-            self.slider = gui.add_slider("frame", min=0, max=max(1, len(self.store.frames) - 1), step=1, initial_value=0)
+            self.slider = gui.add_slider("frame", min=0, max=max(1, len(self.store.frames) - 1), step=1,
+                                         initial_value=0)
             self.play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
             self.fps = gui.add_slider("frames/s", min=1, max=30, step=1, initial_value=10)
             self.follow = gui.add_checkbox("follow live", live, visible=live)
@@ -479,7 +489,7 @@ class TrailView:
         return np.asarray(p[:self.n], dtype or np.float32)
 
 
-def serve_until_interrupted(viewer: "ViserViewer", what: str) -> None:
+def serve_until_interrupted(viewer: ViserViewer, what: str) -> None:
     """Keep the viewer up until Ctrl-C or SIGTERM (plvo view), then close it: quitting is not an error, so the
     signal is held from before the address is printed until the viewer is closed (no KeyboardInterrupt)."""
     with deferred_signals("") as held:

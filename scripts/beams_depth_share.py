@@ -30,8 +30,10 @@ for adapt in (False, True):
             scan = resample_beams(f.scan, beams, f.calib.lidar_elevation_offset_deg)
             pri = extract_depth(scan, feats[i], f.calib, dcfg).priors
             ok = pri.point_valid
-            pts += int(ok.sum()); npts += len(ok)
-            lines += int(pri.line_valid.sum()); nlines += len(pri.line_valid)
+            pts += int(ok.sum())
+            npts += len(ok)
+            lines += int(pri.line_valid.sum())
+            nlines += len(pri.line_valid)
             gt_file = gt_dir / f"{f.index:06d}.npy"
             if gt_file.is_file() and ok.any():
                 gt = np.load(gt_file)

@@ -7,8 +7,16 @@ import numpy as np
 from plvo.depth.extract import DepthDebug
 from plvo.geometry.se3 import exp
 from plvo.recording import RunInfo
-from plvo.results import (EDGE_LOOP, EDGE_ODOMETRY, GraphResult, KeyframeResult, LoopResult, MapResult,
-                          MetricsResult, TimingResult)
+from plvo.results import (
+    EDGE_LOOP,
+    EDGE_ODOMETRY,
+    GraphResult,
+    KeyframeResult,
+    LoopResult,
+    MapResult,
+    MetricsResult,
+    TimingResult,
+)
 from plvo.tracking.frontend import FrontendResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame
 
@@ -24,7 +32,7 @@ def pose(i: int) -> np.ndarray:
 
 
 def keyframe_frames(n: int, every: int = 3) -> list[int]:
-    return sorted({i for i in range(n) if i % every == 0} | ({LOST_FRAME} if LOST_FRAME < n else set()))
+    return sorted({i for i in range(n) if i % every == 0} | ({LOST_FRAME} if n > LOST_FRAME else set()))
 
 
 def frame(i: int, rng: np.random.Generator) -> Frame:

@@ -73,14 +73,14 @@ class _Msgs:
         PF = self.T["sensor_msgs/msg/PointField"]
         n = len(scan)
         if layout == "xyzi":
-            names, offsets, types, step = "x y z intensity".split(), [0, 4, 8, 12], [7, 7, 7, 7], 16
+            names, offsets, types, step = ["x", "y", "z", "intensity"], [0, 4, 8, 12], [7, 7, 7, 7], 16
         elif layout == "no_xyz":  # a range image: no cartesian fields
-            names, offsets, types, step = "x range_m azimuth intensity".split(), [0, 4, 8, 12], [7, 7, 7, 7], 16
+            names, offsets, types, step = ["x", "range_m", "azimuth", "intensity"], [0, 4, 8, 12], [7, 7, 7, 7], 16
         elif layout == "padded_time":  # PCL PointXYZIR + time: x y z (pad) intensity ring (pad) time
-            names, offsets, types, step = "x y z intensity ring time".split(), [0, 4, 8, 16, 20, 24], \
+            names, offsets, types, step = ["x", "y", "z", "intensity", "ring", "time"], [0, 4, 8, 16, 20, 24], \
                 [7, 7, 7, 7, 4, 7], 32
         else:  # ouster: x y z (pad) t intensity reflectivity ring, t in ns
-            names, offsets, types, step = "x y z t intensity ring".split(), [0, 4, 8, 16, 20, 28], \
+            names, offsets, types, step = ["x", "y", "z", "t", "intensity", "ring"], [0, 4, 8, 16, 20, 28], \
                 [7, 7, 7, 6, 7, 4], 48
         np_types = {4: "<u2", 6: "<u4", 7: "<f4"}
         rec = np.zeros(n, dtype=np.dtype({"names": names, "formats": [np_types[t] for t in types],
@@ -166,7 +166,8 @@ def write_bag(path: Path, dataset, spec: BagSpec = BagSpec(), color: bool = Fals
             if spec.extra_image_topic:
                 put(spec.extra_image_topic, t, m.image(t, image, spec.compressed))
             if spec.camera_info:
-                put(spec.image_topic.rsplit("/", 1)[0] + "/camera_info", t, m.camera_info(t, dataset.calib, spec.distortion))
+                put(spec.image_topic.rsplit("/", 1)[0] + "/camera_info", t,
+                    m.camera_info(t, dataset.calib, spec.distortion))
             if i not in spec.drop_scans:
                 put(spec.cloud_topic, t + spec.scan_lag_s, m.cloud(t + spec.scan_lag_s, frame.scan, spec.cloud_layout))
     if spec.ros == 2 and spec.storage == "mcap":

@@ -106,9 +106,10 @@ def read_kitti_poses(path) -> np.ndarray:
 
 
 def read_p0(path) -> np.ndarray:
-    for line in open(path):
-        if line.startswith("P0:"):
-            return np.array(line.split()[1:], dtype=float).reshape(3, 4)[:, :3]
+    with open(path) as f:
+        for line in f:
+            if line.startswith("P0:"):
+                return np.array(line.split()[1:], dtype=float).reshape(3, 4)[:, :3]
     raise ValueError(f"{path}: no P0")
 
 
@@ -178,7 +179,8 @@ def point_segment_distance(p: np.ndarray, seg: np.ndarray) -> np.ndarray:
     """(P,S) distances of points (P,2) to segments (S,4)."""
     a, b = seg[None, :, :2], seg[None, :, 2:]
     d = b - a
-    t = np.clip(np.einsum("psk,psk->ps", p[:, None, :] - a, d) / np.maximum(np.einsum("psk,psk->ps", d, d), 1e-12), 0, 1)
+    t = np.clip(np.einsum("psk,psk->ps", p[:, None, :] - a, d) / np.maximum(np.einsum("psk,psk->ps", d, d), 1e-12),
+                0, 1)
     q = a + t[..., None] * d
     return np.linalg.norm(p[:, None, :] - q, axis=2)
 

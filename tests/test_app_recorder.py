@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from app_fakes import CALIB, LOST_FRAME, drive, keyframe_frames, pose
+
 from plvo.geometry.se3 import exp, inv
 from plvo.recording import RunInfo
 from plvo.types import Calibration

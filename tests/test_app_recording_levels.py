@@ -8,8 +8,8 @@ import logging
 
 import numpy as np
 import pytest
-
 from app_fakes import LOST_FRAME, drive, keyframe_frames
+
 from plvo.errors import RecordingError
 from plvo.results import TimingResult
 from plvo_app.recording_levels import DetailOptions, DetailPolicy, parse_window

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from app_fakes import drive, pose
+
 from plvo_app.rerun_recorder import RerunRecorder
 from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer, load_rrd
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from faults_table import VIZ, read_stderr_until
 
-from faults_table import read_stderr_until, VIZ
 from plvo_app.rrd_reader import read_rrd
 
 REPO = Path(__file__).resolve().parents[1]

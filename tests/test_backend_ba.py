@@ -108,7 +108,8 @@ def test_single_view_landmarks_move_rigidly_with_their_keyframe(noisy):
     uv = (p.K @ se3.transform_points(se3.inv(truth.T_world_cam[k]), extra_pt).T).T
     uv = uv[:, :2] / uv[:, 2:]
     q = dataclasses.replace(p, points=np.r_[p.points, extra_pt], pt_kf=np.r_[p.pt_kf, k],
-                            pt_idx=np.r_[p.pt_idx, p.n_points], pt_uv=np.r_[p.pt_uv, uv], pt_depth=np.r_[p.pt_depth, 25.0])
+                            pt_idx=np.r_[p.pt_idx, p.n_points], pt_uv=np.r_[p.pt_uv, uv],
+                            pt_depth=np.r_[p.pt_depth, 25.0])
     res = optimize(q)
     assert res.point_used[-1]
     move = res.T_world_cam[k] @ se3.inv(q.T_world_cam[k])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from plvo.backend.problem import make_synthetic_problem
-from plvo.config import BackendConfig
 from plvo.backend.scale_correction import correct_scale, scale_factor, scale_problem
+from plvo.config import BackendConfig
 from plvo.geometry import se3
 
 

@@ -4,12 +4,9 @@ rectified; bad folders get one line."""
 
 from __future__ import annotations
 
-import shutil
-
 import cv2
 import numpy as np
 import pytest
-
 from bag_writer import distort_image
 
 from plvo.data.calib_yaml import read_calib_yaml, write_calib_yaml

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from bag_writer import BASE_S, SCAN_LAG_S, BagSpec, distort_image, write_bag
+from bag_writer import BASE_S, BagSpec, distort_image, write_bag
 
 from plvo.config import SystemConfig, merge
 from plvo.data.calib_yaml import write_calib_yaml
@@ -75,7 +75,7 @@ def _assert_same_frames(bag: RosbagDataset, ref: KittiOdometry, has_time: bool, 
         np.testing.assert_array_equal(point_set(got.scan), point_set(want.scan))
         if has_time:
             assert got.scan_time is not None and len(got.scan_time) == len(got.scan)
-            assert 0.0 <= got.scan_time.min() and got.scan_time.max() <= 0.1 + 1e-6  # one 10 Hz sweep
+            assert got.scan_time.min() >= 0.0 and got.scan_time.max() <= 0.1 + 1e-6  # one 10 Hz sweep
             assert np.ptp(got.scan_time) > 0.09
         else:
             assert got.scan_time is None

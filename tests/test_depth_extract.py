@@ -67,7 +67,8 @@ def point_range_stats(depth_prior, valid, eligible, gt_depth_map, kp) -> dict:
     for lo, hi in RANGES:
         m = interior & (zt >= lo) & (zt < hi)
         e = err[m & valid]
-        out[(lo, hi)] = (int(m.sum()), int((m & valid).sum()), *(np.percentile(e, [50, 90]) if len(e) else (np.nan,) * 2))
+        out[(lo, hi)] = (int(m.sum()), int((m & valid).sum()),
+                         *(np.percentile(e, [50, 90]) if len(e) else (np.nan,) * 2))
     edge = np.isfinite(zmin) & (jump > 0.2) & valid
     mix = edge & (np.abs(depth_prior - zmin) > 0.05 * zmin) & (np.abs(depth_prior - zt) > 0.05 * zt)
     out["edge"] = (int(edge.sum()), int(mix.sum()))
@@ -177,7 +178,8 @@ def test_town_point_and_line_priors_against_exact_depth(town):
     e = np.concatenate([x[0] for x in line_err])
     rel = np.concatenate([x[1] for x in line_err])
     # Measured: median ~5 cm; the tail (p90 ~1.6 m) is far horizontal edges at building feet (wall meets road).
-    assert len(e) >= 20 and np.median(e) <= 0.1 and np.mean(rel <= 0.05) >= 0.7, (len(e), np.median(e), np.mean(rel <= 0.05))
+    assert len(e) >= 20 and np.median(e) <= 0.1 and np.mean(rel <= 0.05) >= 0.7, \
+        (len(e), np.median(e), np.mean(rel <= 0.05))
 
 
 def test_extract_result_shapes_and_debug():

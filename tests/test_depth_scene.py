@@ -177,7 +177,8 @@ def ray_line_points(segments: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
     for i, (seg, (a, b)) in enumerate(zip(segments, lines3d)):
         d = (b - a) / np.linalg.norm(b - a)
         for k in range(2):
-            r = np.array([(seg[2 * k] - K_KITTI[0, 2]) / K_KITTI[0, 0], (seg[2 * k + 1] - K_KITTI[1, 2]) / K_KITTI[1, 1], 1.0])
+            r = np.array([(seg[2 * k] - K_KITTI[0, 2]) / K_KITTI[0, 0],
+                          (seg[2 * k + 1] - K_KITTI[1, 2]) / K_KITTI[1, 1], 1.0])
             r /= np.linalg.norm(r)
             A = np.array([[1.0, -(r @ d)], [r @ d, -1.0]])
             s, t = np.linalg.solve(A, [a @ r, a @ d])

@@ -4,8 +4,8 @@ same tables as the in-process run, and Ray shut down afterwards."""
 from __future__ import annotations
 
 import pytest
-
 from eval_scene import write_box_sequence
+
 from plvo.eval.report import build_report, report_json
 from plvo.eval.runner import SequenceSource, build_specs, execute, kiss_threads, with_threads
 

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from eval_scene import write_box_sequence
+
 from plvo.data.dataset import Dataset
+from plvo.errors import PlvoError
 from plvo.eval import tasks
 from plvo.eval.report import build_report, report_json
 from plvo.eval.runner import RunSpec, SequenceSource, build_specs, execute
-from plvo.errors import PlvoError
 from plvo_app.cli import main
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from faults_table import fault, one_error_line
+
 from plvo.config import ABLATIONS, SystemConfig, config_from_dict, load_config, with_ablation
 from plvo.config_ranges import ORDERED, RANGES, check_ranges, numeric_fields
 from plvo.errors import CalibrationError, ConfigError, TrajectoryError

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from faults_table import fault, one_error_line, viz_env
+
 from plvo_app.rrd_reader import read_rrd
 
 _env = viz_env

@@ -9,7 +9,8 @@ import socket
 import subprocess
 from pathlib import Path
 
-from faults_table import fault, read_stderr_until, VIZ, viz_env
+from faults_table import VIZ, fault, read_stderr_until, viz_env
+
 from plvo_app.rrd_reader import read_rrd
 
 _env = viz_env

@@ -7,8 +7,8 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
-
 from features_eval import flow_predicted_segments, judge_lines, judge_points, read_kitti_poses, read_p0
+
 from plvo.config import LineConfig, MatchingConfig, OrbConfig
 from plvo.features.extract import extract_features
 from plvo.features.matching import hamming_matrix, hamming_pairs, match_features, match_lines, match_points
@@ -32,7 +32,7 @@ def scene(seed: int = 0) -> np.ndarray:
     """Texture plus bars of various angles and widths."""
     rng = np.random.default_rng(seed)
     img = cv2.GaussianBlur(rng.normal(128, 50, (H, W)).astype(np.float32), (0, 0), 2.0)
-    for k in range(14):
+    for _ in range(14):
         c = rng.uniform([100, 60], [W - 100, H - 60])
         th = rng.uniform(0, np.pi)
         d = rng.uniform(60, 160) * np.array([np.cos(th), np.sin(th)])

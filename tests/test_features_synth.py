@@ -5,7 +5,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from features_eval import (
     edge_precision_recall,
     flow_predicted_segments,
@@ -13,6 +12,7 @@ from features_eval import (
     read_kitti_poses,
     read_p0,
 )
+
 from plvo.config import LineConfig, MatchingConfig, OrbConfig
 from plvo.features.extract import extract_features
 from plvo.features.lines import detect_lsd, repair_segments, segment_lengths
@@ -118,7 +118,7 @@ def test_matching_on_consecutive_town_frames(town):
     cfg = MatchingConfig()
     p_ok = p_n = q_ok = q_n = l_ok = l_n = l_judged = 0
     for i in FRAMES:
-        (img0, depth0), (img1, depth1) = frame(i), frame(i + 1)
+        (img0, depth0), (img1, _) = frame(i), frame(i + 1)
         a = extract_features(img0, OrbConfig(), LineConfig())
         b = extract_features(img1, OrbConfig(), LineConfig())
         m = match_points(a, b, cfg)

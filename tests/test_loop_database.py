@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_loop_scenes import planar_view, scene_image
 
 from plvo.config import LineConfig, LoopConfig, OrbConfig
 from plvo.features.extract import extract_features
 from plvo.geometry import se3
 from plvo.loop.database import KeyframeDatabase, LoopDetector, combine_scores
 from plvo.loop.vocabulary import BowVector, l1_score, load_default
-from test_loop_scenes import planar_view, scene_image
+
 
 @given(st.floats(0.0, 0.99), st.floats(0.0, 0.99), st.floats(0.001, 0.5))
 @settings(max_examples=200, deadline=None)

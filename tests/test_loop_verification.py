@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_loop_scenes import K, planar_keyframe, planar_view, scene_image
 
 from plvo.config import LoopConfig
 from plvo.geometry import se3
 from plvo.loop.verification import match_binary, verify
-from test_loop_scenes import K, planar_keyframe, planar_view, scene_image
 
 DEPTH = 10.0
 

@@ -6,13 +6,13 @@ import time
 
 import numpy as np
 import pytest
+from test_loop_scenes import planar_view, scene_image
 
 from plvo.config import LineConfig, OrbConfig
 from plvo.errors import PlvoError
 from plvo.features.extract import extract_features
-from plvo.loop.vocabulary import ASSET_DIR, BowVector, Vocabulary, l1_score, load_default
-from test_loop_scenes import planar_view, scene_image
 from plvo.geometry import se3
+from plvo.loop.vocabulary import ASSET_DIR, BowVector, Vocabulary, l1_score, load_default
 
 
 @pytest.fixture(scope="module")

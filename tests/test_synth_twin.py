@@ -206,7 +206,7 @@ def test_lidar_models_and_sweep_times():
     assert sweep_time(np.array([0.0]))[0] == 0.0
     assert sweep_time(np.array([np.pi / 2]))[0] == pytest.approx(-0.025)  # the left is swept before the front
     assert sweep_time(np.array([-np.pi / 2]))[0] == pytest.approx(0.025)
-    for name, model in LIDAR_MODELS.items():
+    for model in LIDAR_MODELS.values():
         rays = model.rays()
         assert rays.shape == (len(model.elevations_deg) * model.azimuth_steps, 3)
         np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0, atol=1e-6)

@@ -29,7 +29,7 @@ def trajectory(n: int, speed: float = 1.0, yaw_rate_deg: float = 0.5, stop: tupl
                turn: tuple[int, int, float] | None = None):
     """(n,4,4) T_world_cam: driving forward (z) at `speed` m/frame while turning; standing still during `stop`;
     turn = (first, end, deg a frame) a sharp turn."""
-    s, yaw, poses = 0.0, 0.0, []
+    yaw, poses = 0.0, []
     pos = np.zeros(3)
     for i in range(n):
         if turn and turn[0] <= i < turn[1]:

@@ -7,8 +7,8 @@ import pytest
 
 from plvo.config import TrackingConfig
 from plvo.geometry import se3
-from plvo.tracking.keyframes import KeyframePolicy, triangulate_tracks
 from plvo.tracking.association import FrameAssociation
+from plvo.tracking.keyframes import KeyframePolicy, triangulate_tracks
 from plvo.tracking.map import LandmarkMap
 
 K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.2], [0.0, 0.0, 1.0]])

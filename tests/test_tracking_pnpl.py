@@ -178,9 +178,9 @@ def test_bad_shapes_raise():
 
 
 def test_repeats_exactly_where_poselib_does_not():
-    """A town frame (85 points, 20 lines, no prediction: the tracker's rescue; tests/data) on which poselib's PnPL RANSAC gives a pose that differs in
-    the last bits from call to call (every call, before the snap): solve_pnpl must give one pose, so that a run's
-    trajectory does not depend on what its process ran before."""
+    """A town frame (85 points, 20 lines, no prediction: the tracker's rescue; tests/data) on which poselib's PnPL
+    RANSAC gives a pose that differs in the last bits from call to call (every call, before the snap): solve_pnpl
+    must give one pose, so that a run's trajectory does not depend on what its process ran before."""
     from pathlib import Path
 
     d = np.load(Path(__file__).parent / "data" / "pnpl_town21_frame.npz")

@@ -49,7 +49,8 @@ def test_synthetic_town_points_and_lines_low_drift(town):
     frac, rot = _final_drift(ds.gt_T_world_cam, est)
     # Measured 0.40 % and 0.10 deg over the 19 m; 1 % / 0.3 deg leave room for the stages' changes.
     assert frac < 0.01 and rot < 0.3, (frac, rot)
-    # Lines take part (measured 20.6 line inliers a frame; without the line search by projection 14 on a 560 m town run).
+    # Lines take part (measured 20.6 line inliers a frame; without the line search by projection 14 on a 560 m town
+    # run).
     n_line = np.array([r.n_line_inliers for r in res[1:]])
     assert n_line.mean() > 15, n_line
     assert np.mean([r.n_point_inliers for r in res[1:]]) > 60

@@ -7,7 +7,6 @@ import argparse
 
 import numpy as np
 import pytest
-
 from evo.tools import file_interface  # the test extras' evo: an independent reader of both formats
 
 from plvo.data.trajectory import write_poses

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import logging
 import sys
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -217,8 +217,8 @@ def test_a_worker_process_reuses_freed_memory_instead_of_faulting_it_in_again():
     it is faulted in again page by page; a worker process keeps the memory (plvo.heap.keep_freed_memory)."""
     import subprocess
 
-    script = "import sys; sys.path[:0] = %r; from tests.test_workers import _faults_of_scan_sized_arrays as f; " \
-             "print(f())" % (sys.path,)
+    script = (f"import sys; sys.path[:0] = {sys.path!r}; "
+              "from tests.test_workers import _faults_of_scan_sized_arrays as f; print(f())")
     default = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                                  cwd=Path(__file__).resolve().parents[1]).stdout)
     assert default > 20 * 500  # the default policy: the test's premise

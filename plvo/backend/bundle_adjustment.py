@@ -10,8 +10,9 @@ Parameterisation: poses as T_cam_world perturbed on the left, T_cw <- exp(xi) T_
 plvo.geometry.line_jacobians); points additively; lines in orthonormal form, updated by the 4-dof
 `orth_update`, re-anchored every iteration. Robust kernels by iteratively reweighted least squares per
 observation. Fixed keyframes are not variables. Landmarks seen by a single keyframe (nine in ten of a seq-04
-window) carry no pose information and are not variables either: they move rigidly with their keyframe (`_carry`). The cost reported is gtsam's: sum of rho(|whitened r|) with
-rho(s) = s^2/2 up to the Huber threshold k and k s - k^2/2 beyond.
+window) carry no pose information and are not variables either: they move rigidly with their keyframe (`_carry`).
+The cost reported is gtsam's: sum of rho(|whitened r|) with rho(s) = s^2/2 up to the Huber threshold k and
+k s - k^2/2 beyond.
 """
 
 from __future__ import annotations
@@ -56,7 +57,8 @@ def point_block(
     zi = 1.0 / np.where(np.abs(z) > 1e-9, z, 1e-9)
     stereo = np.isfinite(depth) & (depth > 0)
     u_r_meas = uv[:, 0] - fx * baseline / np.where(stereo, depth, 1.0)
-    r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1], fx * (x - baseline) * zi + cx - u_r_meas], 1)
+    r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1],
+                  fx * (x - baseline) * zi + cx - u_r_meas], 1)
     r[~stereo, 2] = 0.0
     if not jacobians:
         return r / sigma, None, None
@@ -133,7 +135,7 @@ class _Blocks:
             total += float(np.sum(0.5 * s * s if k is None else np.where(s <= k, 0.5 * s * s, k * s - 0.5 * k * k)))
         return total
 
-    def normal_equations(self, lay: "_Layout") -> "_Normal":
+    def normal_equations(self, lay: _Layout) -> _Normal:
         """Accumulate J^T W J and J^T W r by blocks: poses dense, pose-landmark dense, landmark 3x3/4x4 blocks."""
         ne = _Normal(lay)
         for (r, terms, _), w in zip(self.items, self.weights()):
@@ -156,7 +158,7 @@ class _Blocks:
 class _Normal:
     """Damped normal equations solved by the Schur complement on the landmarks (block-diagonal)."""
 
-    def __init__(self, lay: "_Layout") -> None:
+    def __init__(self, lay: _Layout) -> None:
         self.lay = lay
         self.n_p, n_l = lay.n_pose_vars, lay.size - lay.n_pose_vars
         self.Hpp = np.zeros(self.n_p * self.n_p)
@@ -245,7 +247,8 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline, jacobians: bool
     o = sel["pt"]
     r, Jp, Jx = point_block(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
                             sel["depth"], baseline, cfg.sigma_point_px, jacobians)
-    b.add(r, [(lay.pose[problem.pt_kf[o]], Jp), (lay.point[problem.pt_idx[o]], Jx)], cfg.huber_point / cfg.sigma_point_px)
+    b.add(r, [(lay.pose[problem.pt_kf[o]], Jp), (lay.point[problem.pt_idx[o]], Jx)],
+          cfg.huber_point / cfg.sigma_point_px)
     o = sel["ln"]
     if len(o):
         j = problem.ln_idx[o]
@@ -293,7 +296,7 @@ _MIN_POINT_INFORMATION = 1.0
 _MIN_LINE_INFORMATION = 1.0 / 0.2**2
 
 
-def _weak_landmarks(normal: "_Normal") -> tuple[np.ndarray, np.ndarray]:
+def _weak_landmarks(normal: _Normal) -> tuple[np.ndarray, np.ndarray]:
     """-> (used points,) bool and (used lines,) bool: blocks with too small an eigenvalue."""
     out = []
     for H, k, limit in ((normal.Hpt, 3, _MIN_POINT_INFORMATION), (normal.Hln, 4, _MIN_LINE_INFORMATION)):
@@ -463,7 +466,8 @@ def optimize(
     if ln_ok.any():  # only sound lines (usable_landmarks): collapsed segments have no Pluecker form
         o = _line_origins(problem.lines[ln_ok], problem.T_world_cam[:, :3, 3].mean(axis=0))
         origin[ln_ok] = o
-        U[ln_ok], W[ln_ok] = plucker_to_orth(plucker_from_points(problem.lines[ln_ok, 0] - o, problem.lines[ln_ok, 1] - o))
+        U[ln_ok], W[ln_ok] = plucker_to_orth(
+            plucker_from_points(problem.lines[ln_ok, 0] - o, problem.lines[ln_ok, 1] - o))
     state = (T_cw, pts, U, W)
     state, initial_cost, cost, it, pt_ok, ln_ok = _levenberg_marquardt(
         problem, state, origin, pt_ok, ln_ok, None, None, cfg, use_depth_priors, stereo_baseline_m)
@@ -491,4 +495,5 @@ def optimize(
     log.debug("BA: %d kf, %d pts, %d lines, cost %.4g -> %.4g in %d it, %.1f ms", problem.n_keyframes,
               int(pt_ok.sum()), int(ln_ok.sum()), initial_cost, cost, it, 1e3 * dt)
     return BAResult(T_world_cam=np.stack([se3.inv(T) for T in T_cw]), points=pts, lines=lines,
-                    point_used=pt_ok | pt_moved, line_used=ln_ok | ln_moved, initial_cost=initial_cost, final_cost=cost, iterations=it, time_s=dt)
+                    point_used=pt_ok | pt_moved, line_used=ln_ok | ln_moved, initial_cost=initial_cost,
+                    final_cost=cost, iterations=it, time_s=dt)

@@ -63,7 +63,8 @@ def line_chart_jacobian(phi: np.ndarray) -> np.ndarray:
 def prior_distance_and_jacobians(
     T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, priors_cam: np.ndarray, jacobians: bool = True,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """(N,4,4), (N,3,3), (N,2,2), (N,2,3) camera-frame endpoint priors -> mean distance (N,) m, J_pose (N,6), J_line (N,4).
+    """(N,4,4), (N,3,3), (N,2,2), (N,2,3) camera-frame endpoint priors -> mean distance (N,) m, J_pose (N,6),
+    J_line (N,4).
 
     J_pose is w.r.t. the left perturbation xi=(rho,phi) of T_cam_world, J_line w.r.t. the orth_update delta.
     jacobians=False: (distance, None, None).
@@ -132,7 +133,8 @@ def line_residuals(
     obs: LineObservations,
     want_jacobians: bool = True,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """(3,3), (N,4,4) poses of the observing kfs, (3,3),(2,2) world line -> r (D,), J_pose (D,N,6) gtsam order, J_line (D,4).
+    """(3,3), (N,4,4) poses of the observing kfs, (3,3),(2,2) world line -> r (D,), J_pose (D,N,6) gtsam order,
+    J_line (D,4).
 
     Rows: 2 per observation (gamma, px), then one per observation with priors (mean prior distance, m).
     J_pose[:, n] is the Jacobian w.r.t. the n-th observation's pose; J_line w.r.t. the orth_update delta.
@@ -213,7 +215,8 @@ def usable_landmarks(problem: BAProblem, use_depth_priors: bool = True) -> tuple
     # A line seen twice without priors is exactly determined (4 residuals, 4 dof): it tells the poses nothing
     # and, near its epipolar plane, only slows LM down; it needs a third view or an endpoint prior.
     n_ln = np.bincount(problem.ln_idx, minlength=problem.n_lines)
-    ln_prior = np.all(np.isfinite(problem.ln_prior.reshape(-1, 6)), axis=1) if use_depth_priors else np.zeros(len(problem.ln_idx), bool)
+    ln_prior = (np.all(np.isfinite(problem.ln_prior.reshape(-1, 6)), axis=1) if use_depth_priors
+                else np.zeros(len(problem.ln_idx), bool))
     n_lp = np.bincount(problem.ln_idx[ln_prior], minlength=problem.n_lines)
     length = np.linalg.norm(problem.lines[:, 1] - problem.lines[:, 0], axis=1)
     sound = np.isfinite(length) & (length > 1e-6)  # a collapsed segment has no direction (seen on synthetic runs)

@@ -132,19 +132,21 @@ def make_synthetic_problem(
 ) -> BAProblem:
     """A KITTI-like window at its exact truth (callers perturb a copy with dataclasses.replace).
 
-    Keyframes drive forward along +z, step_m apart, swaying sway_m left-right; landmarks 5-40 m ahead, within +-15 m left-right and
-    -3..2 m in height (OpenCV y down). Each landmark is observed by every keyframe that sees it in the image;
-    a `prior_fraction` of observations carry depth priors (exact, or with 5 cm noise on line endpoints when
-    pixel_noise > 0; point depths stay exact). relative-pose factors link adjacent keyframes
-    with the true relative pose and zeta = 1. The first keyframe is fixed.
+    Keyframes drive forward along +z, step_m apart, swaying sway_m left-right; landmarks 5-40 m ahead, within
+    +-15 m left-right and -3..2 m in height (OpenCV y down). Each landmark is observed by every keyframe that sees
+    it in the image; a `prior_fraction` of observations carry depth priors (exact, or with 5 cm noise on line
+    endpoints when pixel_noise > 0; point depths stay exact). relative-pose factors link adjacent keyframes with the
+    true relative pose and zeta = 1. The first keyframe is fixed.
     """
     rng = np.random.default_rng(seed)
     K = np.array([[707.1, 0.0, 601.9], [0.0, 707.1, 183.1], [0.0, 0.0, 1.0]])
     w, h = 1226, 370
     T = np.stack([se3.from_rt(_rand_rot(rng, 0.01), [sway_m * np.sin(k), 0.0, step_m * k]) for k in range(n_kf)])
     z0 = step_m * (n_kf - 1)
-    pts = np.column_stack([rng.uniform(-15, 15, n_points), rng.uniform(-3, 2, n_points), z0 + rng.uniform(5, 40, n_points)])
-    mid = np.column_stack([rng.uniform(-12, 12, n_lines), rng.uniform(-3, 1.5, n_lines), z0 + rng.uniform(6, 35, n_lines)])
+    pts = np.column_stack([rng.uniform(-15, 15, n_points), rng.uniform(-3, 2, n_points),
+                           z0 + rng.uniform(5, 40, n_points)])
+    mid = np.column_stack([rng.uniform(-12, 12, n_lines), rng.uniform(-3, 1.5, n_lines),
+                           z0 + rng.uniform(6, 35, n_lines)])
     dirs = rng.normal(size=(n_lines, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     half = rng.uniform(1.0, 3.0, n_lines)[:, None]

@@ -204,7 +204,8 @@ def _sane(problem: BAProblem, res: BAResult, reg_cfg) -> bool:
     ok = bool(np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.points[res.point_used])))
     for T0, T1 in zip(problem.T_world_cam, res.T_world_cam) if ok else ():
         move = se3.inv(T0) @ T1
-        if np.linalg.norm(move[:3, 3]) > reg_cfg.max_jump_m or np.degrees(se3.rotation_angle(move)) > reg_cfg.max_jump_deg:
+        jump_deg = np.degrees(se3.rotation_angle(move))
+        if np.linalg.norm(move[:3, 3]) > reg_cfg.max_jump_m or jump_deg > reg_cfg.max_jump_deg:
             ok = False
             break
     if not ok:

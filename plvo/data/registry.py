@@ -33,9 +33,9 @@ class Layout:
     """One kind of dataset the registry can open.
 
     matches(sequence) says whether a sequence name is of this kind; locate(root, sequence) lists the candidate
-    (base root, directory that must exist) pairs for any name, first existing one wins; open(base_root, sequence, frames,
-    camera) builds the dataset. A layout with needs_root=False (e.g. a generated sequence) is opened with the root
-    as given, possibly None, and without locate.
+    (base root, directory that must exist) pairs for any name, first existing one wins; open(base_root, sequence,
+    frames, camera) builds the dataset. A layout with needs_root=False (e.g. a generated sequence) is opened with the
+    root as given, possibly None, and without locate.
     """
 
     name: str

@@ -20,8 +20,17 @@ import numpy as np
 from plvo.data.calib_yaml import read_calib_yaml
 from plvo.data.dataset import FrameSelection, SelectedFrames, SourceOptions, select_frames
 from plvo.data.images import split_gray_color
-from plvo.data.ros_messages import (CLOUD_TYPE, IMAGE_TYPES, INFO_TYPE, TF_TYPE, StaticTransforms, camera_model,
-                                    cloud_scan, image_array, stamp_ns)
+from plvo.data.ros_messages import (
+    CLOUD_TYPE,
+    IMAGE_TYPES,
+    INFO_TYPE,
+    TF_TYPE,
+    StaticTransforms,
+    camera_model,
+    cloud_scan,
+    image_array,
+    stamp_ns,
+)
 from plvo.errors import CalibrationError, DatasetError
 from plvo.types import Frame
 

@@ -320,7 +320,7 @@ def _per_length_json(rel: RelativeError) -> dict[str, dict]:
     }
 
 
-def evaluation_json(ev: "SequenceEvaluation") -> dict:
+def evaluation_json(ev: SequenceEvaluation) -> dict:
     """The figures of `plvo eval metric --json` (NaN as null): devkit figures at the top level, `segments` and
     `short` keyed by length in metres."""
     return {

@@ -83,7 +83,8 @@ class RegistrationResult:
     time_s: float
 
 
-def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan", voxel_m: float | None = None) -> o3d.geometry.PointCloud:
+def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan",
+               voxel_m: float | None = None) -> o3d.geometry.PointCloud:
     """(N,3|4) lidar-frame points -> range-cropped (min_range_m..max_range_m), voxel-downsampled point cloud."""
     pts = np.asarray(scan)
     if pts.ndim != 2 or pts.shape[1] not in (3, 4):
@@ -219,7 +220,8 @@ def _run(method: str, src, dst, init, cfg) -> tuple[np.ndarray, float]:
 
 def align(scan_src: np.ndarray | PreparedScan, scan_dst: np.ndarray | PreparedScan, T_dst_src_init: np.ndarray,
           cfg: RegistrationConfig | None = None, T_cam_velo: np.ndarray | None = None) -> RegistrationResult:
-    """(N,3|4),(M,3|4) lidar-frame scans (or PreparedScan), (4,4) initial T_dst_src (lidar), (4,4) T_cam_velo -> result."""
+    """(N,3|4),(M,3|4) lidar-frame scans (or PreparedScan), (4,4) initial T_dst_src (lidar), (4,4) T_cam_velo
+    -> result."""
     cfg = cfg or RegistrationConfig()
     t0 = time.perf_counter()
     T_cv = np.eye(4) if T_cam_velo is None else np.asarray(T_cam_velo, dtype=float)

@@ -55,7 +55,7 @@ class LoopKeyframe:
 
     @classmethod
     def from_features(cls, kf_id: int, T_world_cam: np.ndarray, features: FeatureSet, priors: DepthPriors,
-                      K: np.ndarray, scan: np.ndarray | None = None, frame_index: int = -1) -> "LoopKeyframe":
+                      K: np.ndarray, scan: np.ndarray | None = None, frame_index: int = -1) -> LoopKeyframe:
         """Build from a keyframe's FeatureSet and DepthPriors (camera frame, (3,3) K) and its lidar-frame scan."""
         pts = backproject(K, features.keypoints, priors.point_depth)
         pts[~priors.point_valid] = np.nan

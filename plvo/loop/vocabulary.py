@@ -171,7 +171,7 @@ class Vocabulary:
 
     @classmethod
     def train(cls, images: Sequence[np.ndarray], k: int = 10, depth: int = 5, seed: int = 0, max_iter: int = 10,
-              progress: Callable[[int], None] | None = None, info: str = "") -> "Vocabulary":
+              progress: Callable[[int], None] | None = None, info: str = "") -> Vocabulary:
         """Build from per-image (N_i,32) uint8 descriptor arrays; progress(n) is told of n descriptors placed."""
         if k < 2 or depth < 1:
             raise PlvoError(f"vocabulary: need k >= 2 and depth >= 1, got k={k} depth={depth}")
@@ -208,7 +208,7 @@ class Vocabulary:
         return vocab
 
     @classmethod
-    def _from_lists(cls, node_desc, children, k, depth, info) -> "Vocabulary":
+    def _from_lists(cls, node_desc, children, k, depth, info) -> Vocabulary:
         n = len(node_desc)
         table = np.full((n, k), -1, np.int32)
         for i, ch in enumerate(children):
@@ -238,7 +238,7 @@ class Vocabulary:
             tmp.chmod(0o644)  # mkstemp makes 0600; vocabularies are shipped and shared
 
     @classmethod
-    def load(cls, path: str | Path) -> "Vocabulary":
+    def load(cls, path: str | Path) -> Vocabulary:
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as z:

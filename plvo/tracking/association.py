@@ -17,7 +17,7 @@ class FrameAssociation:
     line_landmark: np.ndarray
 
     @staticmethod
-    def empty(n_points: int, n_lines: int) -> "FrameAssociation":
+    def empty(n_points: int, n_lines: int) -> FrameAssociation:
         return FrameAssociation(np.full(n_points, -1, np.int64), np.full(n_lines, -1, np.int64))
 
     @property

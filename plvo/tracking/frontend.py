@@ -35,14 +35,14 @@ from plvo.features.extract import extract_features
 from plvo.features.matching import match_lines, match_points
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject, in_image, project
+from plvo.results import TrackingResult
 from plvo.tracking import keyframes as kfp
-from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
 from plvo.tracking.association import FrameAssociation, search_by_projection
-from plvo.tracking.map import LandmarkMap
 from plvo.tracking.corrections import RELOCALISED, MapCorrection
+from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
+from plvo.tracking.map import LandmarkMap
 from plvo.tracking.pnpl import refine_pose, snap_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
-from plvo.results import TrackingResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 
 log = logging.getLogger(__name__)
@@ -227,7 +227,8 @@ class Frontend:
         n_found = len(corr["p_lm"]) - len(sol.point_inliers)
         n_found_l = len(corr["l_lm"]) - len(sol.line_inliers)
         msg = (f"frame {frame.index}: {int(p_in.sum())}/{len(p_in)} point ({n_found} re-found by projection) and "
-               f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers" + (f"; keyframe ({decision.reason})" if keyframe else ""))
+               f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers"
+               + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
         return self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
                             corr, (p_in, l_in), n_new, keyframe, timings)

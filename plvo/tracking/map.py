@@ -20,8 +20,16 @@ import numpy as np
 
 from plvo.geometry import se3
 from plvo.tracking.columns import Columns, LandmarkTable
-from plvo.tracking.corrections import (GlobalData, GraphEdge, MapCorrection, WindowData, corrected_poses,
-                                       motion_for, move_points, transform_each)
+from plvo.tracking.corrections import (
+    GlobalData,
+    GraphEdge,
+    MapCorrection,
+    WindowData,
+    corrected_poses,
+    motion_for,
+    move_points,
+    transform_each,
+)
 from plvo.tracking.point_budget import budget_share, owner_ranks
 
 _DESC_BYTES = 32  # ORB and LBD descriptors are both 256 bits

@@ -16,8 +16,8 @@ import numpy as np
 
 from plvo.geometry import se3
 from plvo.geometry.camera import pixel_rays, project
-from plvo.tracking.keyframes import closest_points_on_lines
 from plvo.tracking.association import hamming
+from plvo.tracking.keyframes import closest_points_on_lines
 from plvo.tracking.map import LandmarkMap
 
 NEAR_M = 0.5  # 3D segments are clipped to this depth before projection

@@ -111,7 +111,8 @@ def load_followed(path: str | Path, frames: str | None = None) -> FollowedPath:
     R = poses[a:b, :3, :3]
     bad = np.flatnonzero(np.abs(np.linalg.det(R) - 1.0) > 1e-3)
     if len(bad):
-        raise SynthError(f"{path}: line {a + bad[0] + 1}: the rotation is not a rotation (det {np.linalg.det(R[bad[0]]):.4f})")
+        raise SynthError(f"{path}: line {a + bad[0] + 1}: the rotation is not a rotation "
+                         f"(det {np.linalg.det(R[bad[0]]):.4f})")
     step = np.linalg.norm(np.diff(poses[a:b, :3, 3], axis=0), axis=1)
     if len(step) and step.max() > 6.0:
         k = int(np.argmax(step))

@@ -66,7 +66,8 @@ class TwinSettings:
         lidar_model(self.lidar)
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2**32:
             raise SynthError(f"seed: expected an integer in [0, 2^32), got {self.seed!r}")
-        if self.traffic is not None and (not isinstance(self.traffic, (int, np.integer)) or not 0 <= self.traffic <= 2000):
+        if self.traffic is not None and (not isinstance(self.traffic, (int, np.integer))
+                                         or not 0 <= self.traffic <= 2000):
             raise SynthError(f"--traffic {self.traffic!r}: expected a number of cars from 0 to 2000")
 
 

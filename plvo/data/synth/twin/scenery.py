@@ -85,7 +85,8 @@ def _ground(b: MeshBuilder, layout: Layout) -> int:
     xs = np.arange(lo[0], hi[0] + 1e-9, GROUND_STEP_M)
     ys = np.arange(lo[1], hi[1] + 1e-9, GROUND_STEP_M)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    centres = np.column_stack([(gx[:-1, :-1] + 0.5 * GROUND_STEP_M).ravel(), (gy[:-1, :-1] + 0.5 * GROUND_STEP_M).ravel()])
+    centres = np.column_stack([(gx[:-1, :-1] + 0.5 * GROUND_STEP_M).ravel(),
+                               (gy[:-1, :-1] + 0.5 * GROUND_STEP_M).ravel()])
     d, _ = layout.nearest(centres, upper=GROUND_RADIUS_M + GROUND_STEP_M)
     keep = np.flatnonzero(np.isfinite(d))
     ni, nj = len(xs), len(ys)

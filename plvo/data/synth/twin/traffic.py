@@ -106,18 +106,19 @@ class Traffic:
         out: list[Mover] = []
         crossings = self.layout.crossings
         n_ahead = 0
-        for k in range(n):
+        for _ in range(n):
             kind = KINDS[int(rng.choice(3, p=[0.3, 0.45, 0.25]))]
             if kind == "crossing" and not len(crossings):
                 kind = "oncoming"
             shape = int(rng.integers(len(SHAPES)))
             t0 = float(rng.uniform(0.0, T))
-            ego_v = max(float(np.interp(t0 + 1.0, self.times, self.ego_S) - np.interp(t0 - 1.0, self.times, self.ego_S)) / 2.0,
-                        4.0)
+            ego_v = max(float(np.interp(t0 + 1.0, self.times, self.ego_S)
+                              - np.interp(t0 - 1.0, self.times, self.ego_S)) / 2.0, 4.0)
             if kind == "ahead":
                 n_ahead += 1
                 m = Mover(0, kind, shape, float(np.clip(ego_v * rng.uniform(0.6, 1.1), 3.0, 30.0)), t0,
-                          float(np.interp(t0, self.times, self.ego_S) + rng.uniform(15.0, 45.0)), gap=10.0 + 9.0 * n_ahead)
+                          float(np.interp(t0, self.times, self.ego_S) + rng.uniform(15.0, 45.0)),
+                          gap=10.0 + 9.0 * n_ahead)
             elif kind == "oncoming":
                 m = Mover(0, kind, shape, float(np.clip(ego_v * rng.uniform(0.7, 1.3), 4.0, 30.0)), t0,
                           float(np.interp(t0, self.times, self.ego_S)))
@@ -131,8 +132,8 @@ class Traffic:
                           crossing=c, sign=1.0 if rng.random() < 0.5 else -1.0)
             out.append(m)
         kept = [m for m in out if not self._collides(m)]
-        return [Mover(i + 1, *(getattr(m, f) for f in ("kind", "shape", "speed", "t0", "s0", "gap", "crossing", "sign")))
-                for i, m in enumerate(kept)]
+        fields = ("kind", "shape", "speed", "t0", "s0", "gap", "crossing", "sign")
+        return [Mover(i + 1, *(getattr(m, f) for f in fields)) for i, m in enumerate(kept)]
 
     def _collides(self, m: Mover) -> bool:
         """Would the mover's centre come within the ego car's box grown by COLLIDE_M along and 2.6 m across?"""
@@ -150,12 +151,15 @@ class Traffic:
         """Arc lengths on the driven path -> positions (K,3) offset `lateral` to the left, headings (K,3) unit."""
         xy = np.column_stack([np.interp(s, self.S, self.road[:, 0]), np.interp(s, self.S, self.road[:, 1])])
         z = np.interp(s, self.S, self.road[:, 2])
-        ahead = np.column_stack([np.interp(s + 1.0, self.S, self.road[:, 0]), np.interp(s + 1.0, self.S, self.road[:, 1])])
-        behind = np.column_stack([np.interp(s - 1.0, self.S, self.road[:, 0]), np.interp(s - 1.0, self.S, self.road[:, 1])])
+        ahead = np.column_stack([np.interp(s + 1.0, self.S, self.road[:, 0]),
+                                 np.interp(s + 1.0, self.S, self.road[:, 1])])
+        behind = np.column_stack([np.interp(s - 1.0, self.S, self.road[:, 0]),
+                                  np.interp(s - 1.0, self.S, self.road[:, 1])])
         dz = np.interp(s + 1.0, self.S, self.road[:, 2]) - np.interp(s - 1.0, self.S, self.road[:, 2])
         t = ahead - behind
         norm = np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-9)
-        fwd = np.column_stack([t, dz]) / np.maximum(np.linalg.norm(np.column_stack([t, dz]), axis=1, keepdims=True), 1e-9)
+        t3 = np.column_stack([t, dz])
+        fwd = t3 / np.maximum(np.linalg.norm(t3, axis=1, keepdims=True), 1e-9)
         left = np.column_stack([-t[:, 1], t[:, 0]]) / norm
         pos = np.column_stack([xy + lateral * left, z])
         return pos, (-fwd if reverse else fwd)
