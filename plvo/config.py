@@ -279,7 +279,7 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
         if key not in fields:
             raise ConfigError(f"unknown config key '{name}'")
         want = hints[key]
-        if dataclasses.is_dataclass(want):
+        if isinstance(want, type) and dataclasses.is_dataclass(want):
             if not isinstance(value, dict):
                 raise ConfigError(f"config key '{name}' must be a table")
             kwargs[key] = _from_dict(want, value, f"{name}.")

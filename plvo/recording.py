@@ -12,8 +12,14 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from plvo.depth.extract import DepthDebug
 from plvo.errors import PlvoError
-from plvo.types import Calibration, Frame
+from plvo.results import GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult, TrackingResult
+from plvo.types import Calibration, DepthPriors, FeatureMatches, FeatureSet, Frame
+
+# What the stages hand the recorders (on_stage); a stage may hand a subclass (the tracker's FrontendResult)
+StageResult = (FeatureSet | FeatureMatches | DepthPriors | DepthDebug | TrackingResult | KeyframeResult | GraphResult
+               | MapResult | LoopResult | TimingResult | MetricsResult)
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +52,7 @@ class Recorder(Protocol):
     def on_frame(self, frame: Frame) -> None:
         """A new input frame (image and scan) is about to be processed; sets the current time."""
 
-    def on_stage(self, frame_index: int, result: Any) -> None:
+    def on_stage(self, frame_index: int, result: StageResult) -> None:
         """A typed stage result (FeatureSet, DepthPriors, a tracking or back-end result...) for a frame."""
 
     def close(self) -> None:
@@ -62,7 +68,7 @@ class NullRecorder:
     def on_frame(self, frame: Frame) -> None:
         pass
 
-    def on_stage(self, frame_index: int, result: Any) -> None:
+    def on_stage(self, frame_index: int, result: StageResult) -> None:
         pass
 
     def close(self) -> None:
@@ -93,7 +99,7 @@ class FanOut:
     def on_frame(self, frame: Frame) -> None:
         self._each("on_frame", frame)
 
-    def on_stage(self, frame_index: int, result: Any) -> None:
+    def on_stage(self, frame_index: int, result: StageResult) -> None:
         self._each("on_stage", frame_index, result)
 
     def close(self) -> None:

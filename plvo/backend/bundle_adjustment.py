@@ -231,7 +231,7 @@ class _Normal:
             b = M[:, n_pt3:].reshape(r, -1, 4).transpose(1, 0, 2) @ inv_blocks[1]
             return np.concatenate([a.transpose(1, 0, 2).reshape(r, -1), b.transpose(1, 0, 2).reshape(r, -1)], 1)
 
-        d_p = np.zeros(n_p)
+        d_p: np.ndarray = np.zeros(n_p)
         if n_p:
             Y = apply_inv(Hpl)
             S = Hpp - Y @ Hpl.T
@@ -278,7 +278,11 @@ def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok=None, ln_obs_ok=N
     return {"pt": pt, "ln": ln, "depth": depth, "prior": prior, "rel": rel}
 
 
-def _apply(delta, lay, T_cw, pts, U, W):
+# the LM state: T_cam_world (K,4,4), points (P,3), lines as U (L,3,3) and W (L,2,2)
+_State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _apply(delta, lay, T_cw, pts, U, W) -> _State:
     T_new, pts_new, U_new, W_new = T_cw.copy(), pts.copy(), U.copy(), W.copy()
     for k in np.flatnonzero(lay.pose >= 0):
         T_new[k] = se3.exp(delta[lay.pose[k]:lay.pose[k] + 6]) @ T_cw[k]
@@ -384,7 +388,8 @@ def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.nd
     return out[0], out[1]
 
 
-def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors, baseline):
+def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors,
+                         baseline):
     """LM from state over the selected observations (pt_obs_ok / ln_obs_ok masks, None: all) -> (state, initial
     cost, cost, iterations, pt_ok, ln_ok); landmarks the window cannot determine are dropped first (copies)."""
     pt_ok, ln_ok = pt_ok.copy(), ln_ok.copy()
@@ -432,7 +437,8 @@ def _levenberg_marquardt(problem, state, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs
     return state, initial_cost, cost, it, pt_ok, ln_ok
 
 
-def _outliers(problem, state, origin, pt_ok, ln_ok, cfg, use_depth_priors, baseline) -> tuple[np.ndarray, np.ndarray]:
+def _outliers(problem, state: _State, origin, pt_ok, ln_ok, cfg, use_depth_priors,
+              baseline) -> tuple[np.ndarray, np.ndarray]:
     """-> (O,) and (M,) bool: point / line observations of used landmarks whose residual (all rows, in the
     factor's units: pixels, and metres for a line's prior row) exceeds cfg.outlier_px at `state`."""
     lay = _Layout(problem, pt_ok, ln_ok)

@@ -150,6 +150,7 @@ def line_residuals(
         res.append(dist)
     if not want_jacobians:
         return np.concatenate(res), None, None
+    assert Jp is not None and Jl is not None  # the batch forms compute them by default
     D = 2 * n + int(np.count_nonzero(has))
     J_pose = np.zeros((D, n, 6))
     idx = np.arange(n)
@@ -158,6 +159,7 @@ def line_residuals(
     J_line = [Jl.reshape(-1, 4)]
     if np.any(has):
         rows = 2 * n + np.arange(int(np.count_nonzero(has)))
+        assert Jpd is not None and Jld is not None
         J_pose[rows, np.flatnonzero(has)] = pose_jacobian_to_gtsam(Jpd)
         J_line.append(Jld)
     return np.concatenate(res), J_pose, np.concatenate(J_line, axis=0)
@@ -188,6 +190,7 @@ def make_line_factor(
         U, W = orth_update(U0, W0, phi)
         r, Jp, Jl = line_residuals(K, T, U, W, obs, want_jacobians=H is not None)
         if H is not None:
+            assert Jp is not None and Jl is not None
             for u in range(len(uniq_keys)):
                 H[u] = Jp[:, col == u].sum(axis=1)
             H[len(uniq_keys)] = Jl @ line_chart_jacobian(phi)

@@ -141,7 +141,8 @@ def make_synthetic_problem(
     rng = np.random.default_rng(seed)
     K = np.array([[707.1, 0.0, 601.9], [0.0, 707.1, 183.1], [0.0, 0.0, 1.0]])
     w, h = 1226, 370
-    T = np.stack([se3.from_rt(_rand_rot(rng, 0.01), [sway_m * np.sin(k), 0.0, step_m * k]) for k in range(n_kf)])
+    T = np.stack([se3.from_rt(_rand_rot(rng, 0.01), np.array([sway_m * np.sin(k), 0.0, step_m * k]))
+                  for k in range(n_kf)])
     z0 = step_m * (n_kf - 1)
     pts = np.column_stack([rng.uniform(-15, 15, n_points), rng.uniform(-3, 2, n_points),
                            z0 + rng.uniform(5, 40, n_points)])

@@ -35,7 +35,7 @@ import numpy as np
 from plvo.backend.bundle_adjustment import optimize
 from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.scale_correction import correct_scale, scale_factor
-from plvo.config import BackendConfig, SystemConfig
+from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
 from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
 from plvo.results import EDGE_ODOMETRY
@@ -198,7 +198,7 @@ def _metrics(step: BackendStep) -> dict[str, float]:
     return values
 
 
-def _sane(problem: BAProblem, res: BAResult, reg_cfg) -> bool:
+def _sane(problem: BAProblem, res: BAResult, reg_cfg: RegistrationConfig) -> bool:
     """False (and a warning) when an optimisation moved a keyframe further than a registration may jump
     (max_jump_m / max_jump_deg) or produced non-finite values: such a result is discarded, not written."""
     ok = bool(np.all(np.isfinite(res.T_world_cam)) and np.all(np.isfinite(res.points[res.point_used])))

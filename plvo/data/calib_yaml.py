@@ -85,7 +85,9 @@ def read_calib_yaml(path: Path | str) -> CalibFile:
         if not isinstance(value, int) or value <= 0:
             raise CalibrationError(f"{path}: '{key}' must be a positive integer, got {value!r}")
         size.append(value)
-    K = _matrix(path, data, "camera_matrix", (9,)).reshape(3, 3)
+    K = _matrix(path, data, "camera_matrix", (9,))
+    assert K is not None  # required: _matrix raised otherwise
+    K = K.reshape(3, 3)
     D = _matrix(path, data, "distortion_coefficients", tuple(range(0, 15)), required=False)
     R = _matrix(path, data, "rectification_matrix", (9,), required=False)
     P = _matrix(path, data, "projection_matrix", (12,), required=False)

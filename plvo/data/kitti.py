@@ -127,7 +127,7 @@ def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
         data = kitti_utils.read_calib_file(str(path))
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{path}: cannot parse calibration ({exc})") from None
-    lines = {}
+    lines: dict[str, tuple[int, str]] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):
         key, sep, value = line.partition(":")
         if sep and key.strip() in needed:
@@ -257,7 +257,7 @@ class _PykittiOdometry(pykitti.odometry):
     """pykitti's odometry loader without its pose reading (which prints instead of raising)."""
 
     def _load_poses(self) -> None:
-        self.poses = []
+        self.poses: list[np.ndarray] = []
 
 
 class KittiOdometry(_KittiSequence):

@@ -124,7 +124,7 @@ def _read_open3d(path: Path, frame: int) -> np.ndarray:
 
     if not path.is_file():
         raise DatasetError(f"{path}: missing scan (frame {frame})")
-    cloud = o3d.t.io.read_point_cloud(str(path))
+    cloud = o3d.t.io.read_point_cloud(Path(path))
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         raise DatasetError(f"{path}: no points read (frame {frame})")
     xyz = cloud.point.positions.numpy().astype(np.float32).reshape(-1, 3)

@@ -64,19 +64,27 @@ def _locate_raw(root: Path, drive: str) -> list[tuple[Path, Path]]:
     return found
 
 
+
+def _rooted(root: Path | None) -> Path:
+    """The root a layout with needs_root is opened with (the registry locates one before opening it)."""
+    if root is None:
+        raise DatasetError("no dataset root given (--root or $KITTI_ROOT)")
+    return root
+
+
 _LAYOUTS: list[Layout] = [
     Layout(
         name="kitti_odometry",
         description="a KITTI odometry sequence like '04' (root/sequences/04)",
         matches=lambda s: re.fullmatch(r"\d{2}", s) is not None,
-        open=lambda root, seq, frames, camera: KittiOdometry(root, seq, frames=frames, camera=camera),
+        open=lambda root, seq, frames, camera: KittiOdometry(_rooted(root), seq, frames=frames, camera=camera),
         locate=_locate_odometry,
     ),
     Layout(
         name="kitti_raw",
         description="a KITTI raw drive like '2011_09_26_drive_0009' (root/2011_09_26/2011_09_26_drive_0009_sync)",
         matches=lambda s: RAW_DRIVE.match(s) is not None,
-        open=lambda root, seq, frames, camera: KittiRaw(root, seq, frames=frames, camera=camera),
+        open=lambda root, seq, frames, camera: KittiRaw(_rooted(root), seq, frames=frames, camera=camera),
         locate=_locate_raw,
     ),
 ]

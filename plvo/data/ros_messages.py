@@ -59,9 +59,9 @@ def camera_model(msg, where: str) -> CameraModel:
     K = _field(msg, "k")
     if K.size != 9 or abs(K[0]) < 1e-12:
         raise CalibrationError(f"{where}: CameraInfo has no camera matrix (K is all zero)")
-    R, P = _field(msg, "r"), _field(msg, "p")
-    R = R.reshape(3, 3) if R.size == 9 and abs(R).sum() > 0 else np.eye(3)
-    P = P.reshape(3, 4)[:, :3].copy() if P.size == 12 and abs(P[0]) > 1e-12 else None
+    r, p = _field(msg, "r"), _field(msg, "p")
+    R = r.reshape(3, 3) if r.size == 9 and abs(r).sum() > 0 else np.eye(3)
+    P = p.reshape(3, 4)[:, :3].copy() if p.size == 12 and abs(p[0]) > 1e-12 else None
     model = str(msg.distortion_model or "plumb_bob")
     return CameraModel(width=int(msg.width), height=int(msg.height), K=K.reshape(3, 3), D=_field(msg, "d"),
                        model=model, R=R, P=P)

@@ -122,7 +122,8 @@ class RosbagDataset(SelectedFrames):
         if not self.path.exists():
             raise DatasetError(f"{self.path}: no such bag")
         self.sequence = self.path.stem if self.path.is_file() else self.path.name
-        self._reader_pid, self._reader_obj = None, None
+        self._reader_pid: int | None = None
+        self._reader_obj = None
         reader = self._reader()
         conns = list(reader.connections)
         self.image_topic, self._image_type = _choose(self.path, conns, opts.image_topic, IMAGE_TYPES, "image",
@@ -142,7 +143,8 @@ class RosbagDataset(SelectedFrames):
     # --- indexing ---------------------------------------------------------------------------------------------
 
     def _index(self, reader, info_topic: str | None):
-        images, scans, ranks = [], [], {}
+        images, scans = [], []
+        ranks: dict[tuple[str, int], int] = {}
         self._info, self._tf = None, StaticTransforms()
         first: dict[str, object] = {}
         wanted = [c for c in reader.connections if c.topic in (self.image_topic, self.cloud_topic, info_topic)

@@ -52,8 +52,8 @@ def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False)
         linenos.append(lineno)
     if not rows:
         raise TrajectoryError(f"{path}: no poses in file")
-    rows = np.asarray(rows, dtype=np.float64)
-    return (rows, np.asarray(linenos)) if with_lines else rows
+    poses = np.asarray(rows, dtype=np.float64)
+    return (poses, np.asarray(linenos)) if with_lines else poses
 
 
 def _is_float(s: str) -> bool:

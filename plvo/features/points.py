@@ -14,6 +14,7 @@ where the high one found nothing, and it runs on those cells alone.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -71,10 +72,10 @@ def build_pyramid(image: np.ndarray, cfg: OrbConfig) -> list[np.ndarray]:
     return levels
 
 
-def _kp_arrays(kps: tuple, offset: int) -> tuple[np.ndarray, np.ndarray]:
+def _kp_arrays(kps: Sequence[cv2.KeyPoint], offset: int) -> tuple[np.ndarray, np.ndarray]:
     if not kps:
         return np.zeros((0, 2)), np.zeros(0)
-    xy = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2) + offset
+    xy = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(-1, 2) + offset
     return xy, np.fromiter((k.response for k in kps), dtype=np.float64, count=len(kps))
 
 
@@ -91,7 +92,7 @@ def _fast_corners(img: np.ndarray, cfg: OrbConfig) -> tuple[np.ndarray, np.ndarr
     h, w = img.shape
     if h - 2 * b < 8 or w - 2 * b < 8:
         return np.zeros((0, 2)), np.zeros(0)
-    xy, resp = _kp_arrays(cv2.FastFeatureDetector_create(cfg.fast_threshold, True).detect(img[b : h - b, b : w - b]), b)
+    xy, resp = _kp_arrays(cv2.FastFeatureDetector.create(cfg.fast_threshold, True).detect(img[b : h - b, b : w - b]), b)
     if cfg.fast_threshold_min < cfg.fast_threshold:
         cell = cfg.grid_cell_px
         ncols, nrows = int(np.ceil(w / cell)), int(np.ceil(h / cell))
@@ -132,7 +133,7 @@ def _weak_corners(img: np.ndarray, own: np.ndarray, b: int, threshold: int) -> t
     for k, (a, c, wk, hk) in enumerate(zip(px, py, cw, ch)):
         packed[c : c + hk, a : a + wk] = img[y0[k] : y0[k] + hk, x0[k] : x0[k] + wk]
         owner[c : c + hk, a : a + wk] = k
-    sxy, sresp = _kp_arrays(cv2.FastFeatureDetector_create(threshold, True).detect(packed), 0)
+    sxy, sresp = _kp_arrays(cv2.FastFeatureDetector.create(threshold, True).detect(packed), 0)
     ij = sxy.astype(np.intp)
     k = owner[ij[:, 1], ij[:, 0]]
     shift = np.stack([x0 - np.asarray(px), y0 - np.asarray(py)], axis=1)
@@ -222,18 +223,19 @@ def _describe_level(img: np.ndarray, xy: np.ndarray, angle: np.ndarray, resp: np
     own pyramid (5 of its 7 ms) and describe the corners in images resampled differently from those they were
     detected in.
     """
-    orb = cv2.ORB_create(
+    orb = cv2.ORB.create(
         nfeatures=cfg.n_features, scaleFactor=cfg.scale_factor, nlevels=1, edgeThreshold=cfg.edge_threshold,
         patchSize=PATCH_SIZE,
     )
-    kps = [cv2.KeyPoint(x, y, PATCH_SIZE, a, r, 0) for (x, y), a, r in zip(xy.tolist(), angle.tolist(), resp.tolist())]
-    kps, desc = orb.compute(img, kps)
+    given = [cv2.KeyPoint(x, y, PATCH_SIZE, a, r, 0)
+             for (x, y), a, r in zip(xy.tolist(), angle.tolist(), resp.tolist())]
+    kps, desc = orb.compute(img, given)
     if desc is None or not kps:
         return None
     n = len(kps)
     if n == len(xy):  # nothing dropped: ORB keeps the order
         return xy, angle, resp, desc
-    out_xy = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(n, 2)
+    out_xy = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(n, 2)
     out_angle = np.fromiter((k.angle for k in kps), dtype=np.float64, count=n)
     return out_xy, out_angle, np.fromiter((k.response for k in kps), dtype=np.float64, count=n), desc
 

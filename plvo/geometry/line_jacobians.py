@@ -90,6 +90,7 @@ def line_residual_jacobians(
         np.asarray(W, dtype=float)[None],
         np.asarray(segment, dtype=float).reshape(1, 4),
     )
+    assert jp is not None and jl is not None  # asked for (want_jacobians defaults to True)
     return r[0], jp[0], jl[0]
 
 

@@ -13,6 +13,7 @@ worker runs it, on the same edges (`pose_graph_edges`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from dataclasses import dataclass
@@ -126,7 +127,10 @@ class LoopCloser:
 
     def keyframe(self, kf_id: int) -> LoopKeyframe:
         """What the database keeps of keyframe kf_id (read back from its store), scan included."""
-        arrays, frame_index = self._kfs.get(kf_id)
+        got = self._kfs.get(kf_id)
+        if got is None:
+            raise KeyError(f"loop closer: no keyframe {kf_id} in its database")
+        arrays, frame_index = got
         return LoopKeyframe(kf_id, frame_index=frame_index, **arrays)
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +204,7 @@ class LoopCloser:
                 rejections.append(f"candidate {cid}: {far}")
                 continue
             v = verify(kf, self.keyframe(cid), self.K, self.cfg, self.T_cam_velo, self.reg_cfg,
-                       against_odometry=lambda T, c=cid: self._implausible(kf.kf_id, c, T))
+                       against_odometry=functools.partial(self._implausible, kf.kf_id, cid))
             checks.append(v)
             if v.accepted:
                 edge = LoopEdge(kf.kf_id, cid, v.T_cand_query, v.n_point_inliers + v.n_line_inliers, v.registered)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,7 @@ class KeyframeStore:
     def __init__(self, folder: str | None = None) -> None:
         fd, path = tempfile.mkstemp(prefix="plvo-loop-keyframes-", dir=folder)
         self._file = os.fdopen(fd, "w+b")
+        self._path: str | None
         try:
             os.unlink(path)  # the open file stays readable; nothing is left behind by a killed process
         except OSError:
@@ -63,7 +65,7 @@ class KeyframeStore:
         self.bytes_on_disk += len(data)
         self._where[int(kf_id)] = (offset, int(frame_index), tuple(rows))
 
-    def get(self, kf_id: int) -> tuple[dict[str, np.ndarray | None], int] | None:
+    def get(self, kf_id: int) -> tuple[dict[str, Any], int] | None:
         """Keyframe kf_id's arrays and frame index as put (in the store's dtypes), or None when absent."""
         where = self._where.get(int(kf_id))
         if where is None:
@@ -74,11 +76,14 @@ class KeyframeStore:
         self._file.flush()
         self._file.seek(offset)
         data = bytearray(self._file.read(sum(sizes)))  # writeable arrays, as the keyframe was given
-        out, at = {}, 0
+        out: dict[str, Any] = {}  # field -> array, None for an absent one
+        at = 0
         for (name, dtype, shape), n, size in zip(_FIELDS, rows, sizes):
             out[name] = None if n < 0 else np.frombuffer(data, dtype, n * int(np.prod(shape)), at).reshape(n, *shape)
             at += size
-        out["T_world_cam"] = out["T_world_cam"][0]
+        T = out["T_world_cam"]
+        assert T is not None  # every keyframe has a pose
+        out["T_world_cam"] = T[0]
         return out, frame_index
 
     def close(self) -> None:

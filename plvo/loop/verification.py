@@ -122,7 +122,8 @@ def _pnp_config(cfg: LoopConfig) -> TrackingConfig:
                           ransac_line_px=cfg.ransac_px, outlier_reproj_px=cfg.ransac_px, ransac_iterations=1000)
 
 
-def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str, counts=(0, 0, 0, 0)) -> Verification:
+def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str,
+            counts: tuple[int, int, int, int] = (0, 0, 0, 0)) -> Verification:
     log.info("loop candidate %d for keyframe %d rejected: %s", c.kf_id, q.kf_id, reason)
     return Verification(q.kf_id, c.kf_id, False, np.eye(4), *counts, False, 0.0, reason, time.perf_counter() - t0)
 
@@ -157,7 +158,7 @@ def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConf
                        f"{cfg.min_off_plane}): a repeated texture, not a place", counts)
     registered, fitness = False, 0.0
     if cfg.use_registration and query.scan is not None and cand.scan is not None:
-        T, fitness, err = _register(query, cand, T, T_cam_velo, reg_cfg)
+        T, fitness, err = _register(query.scan, cand.scan, T, T_cam_velo, reg_cfg)
         if err:
             return _reject(query, cand, t0, err, counts)
         registered = True
@@ -171,13 +172,13 @@ def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConf
                         time.perf_counter() - t0)
 
 
-def _register(query: LoopKeyframe, cand: LoopKeyframe, T_cand_query: np.ndarray, T_cam_velo: np.ndarray | None,
+def _register(query_scan: np.ndarray, cand_scan: np.ndarray, T_cand_query: np.ndarray, T_cam_velo: np.ndarray | None,
               reg_cfg: RegistrationConfig | None) -> tuple[np.ndarray, float, str]:
     """Refine T_cand_query by registering Q's scan onto C's -> (T, fitness, error message or "")."""
     T_cv = np.eye(4) if T_cam_velo is None else np.asarray(T_cam_velo, float)
     init = se3.inv(T_cv) @ T_cand_query @ T_cv
     try:
-        r = align(scan_points(query.scan), scan_points(cand.scan), init, reg_cfg, T_cv)
+        r = align(scan_points(query_scan), scan_points(cand_scan), init, reg_cfg, T_cv)
     except (PlvoError, RuntimeError) as exc:  # a scan too sparse to register is a rejection, not a crash
         return T_cand_query, 0.0, f"scan registration raised: {exc}"
     if not r.converged:

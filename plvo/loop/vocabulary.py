@@ -92,7 +92,7 @@ def _kmeans(desc: np.ndarray, bits: np.ndarray, k: int, rng: np.random.Generator
         centres.append(nxt)
         min_d = np.minimum(min_d, hamming(u64, u64[nxt][None])[:, 0])
     cent = desc[centres]
-    labels = None
+    labels: np.ndarray | None = None
     for _ in range(max_iter):
         new = np.argmin(hamming(u64, cent.view(np.uint64)), axis=1)
         if labels is not None and np.array_equal(new, labels):
@@ -101,6 +101,7 @@ def _kmeans(desc: np.ndarray, bits: np.ndarray, k: int, rng: np.random.Generator
         used = np.bincount(new, minlength=len(cent)) > 0
         labels = (np.cumsum(used) - 1)[new]
         cent = _majority(bits, labels, int(used.sum()))
+    assert labels is not None  # iterations >= 1
     return labels
 
 

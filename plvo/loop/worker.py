@@ -37,6 +37,7 @@ from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import LoopKeyframe
 from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, LoopResult, MetricsResult
 from plvo.tracking.corrections import GLOBAL_BA, LOOP, GlobalData, GraphEdge, MapCorrection, corrected_poses
+from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import Observations
 from plvo.types import Calibration
 
@@ -118,7 +119,7 @@ class LoopCore:
         lk = dataclasses.replace(job.keyframe, T_world_cam=poses[job.kf_id])
         outcome = self.closer.on_keyframe(lk)
         correction = None
-        if outcome.accepted is not None and outcome.poses_after is not None:
+        if outcome.accepted is not None and outcome.poses_before is not None and outcome.poses_after is not None:
             e = outcome.accepted
             correction = MapCorrection(LOOP, np.asarray(outcome.kf_ids, np.int64), outcome.poses_before,
                                        outcome.poses_after,
@@ -187,7 +188,7 @@ class LoopCore:
         return registered + [e for e in fallback if (e[0], e[1]) not in have] + loops
 
 
-def loop_keyframe(kf, K: np.ndarray) -> LoopKeyframe:
+def loop_keyframe(kf: KeyframeInfo, K: np.ndarray) -> LoopKeyframe:
     """A tracker KeyframeInfo -> the LoopKeyframe the closer keeps (camera-frame 3D from its depth priors)."""
     priors = kf.depth_priors
     scan = kf.registration_scan  # for the verification's registration

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import DTypeLike
+
+# column name -> (shape of one row, dtype, fill value of an empty row)
+Spec = dict[str, tuple[tuple[int, ...], DTypeLike, object]]
 
 
 class Columns:
     """Named numpy columns that grow together, by half again when full; rows [0, n) are in use."""
 
-    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
+    def __init__(self, spec: Spec):
         self._spec = spec
         self.n = 0
         self.cols = {k: np.full((16, *shape), fill, dtype=dt) for k, (shape, dt, fill) in spec.items()}
@@ -62,7 +66,7 @@ class LandmarkTable(Columns):
     sorted by id when some are dropped (`keep`), so an id's row is found by binary search and an id handed to a
     worker stays valid (found or known gone) whatever was dropped meanwhile."""
 
-    def __init__(self, spec: dict[str, tuple[tuple[int, ...], np.dtype, object]]):
+    def __init__(self, spec: Spec):
         super().__init__({"id": ((), np.int64, -1), **spec})
         self.next_id = 0
 

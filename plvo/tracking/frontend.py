@@ -113,7 +113,11 @@ class _FrameState:
     kf_track: np.ndarray  # (N,) keypoint index in the last keyframe this keypoint was tracked from, -1 none
 
 
-def _default_stages():
+# (extract_features, match_points, match_lines, extract_depth_priors) or stand-ins with their signatures
+Stages = tuple[Callable[..., FeatureSet], Callable[..., Matches], Callable[..., Matches], Callable[..., DepthPriors]]
+
+
+def _default_stages() -> Stages:
     return extract_features, match_points, match_lines, extract_depth_priors
 
 
@@ -121,14 +125,15 @@ class Frontend:
     """Per-frame tracker. `track(frame)` once per frame, in order; `map` is shared with the back end."""
 
     def __init__(self, calib: Calibration, config: SystemConfig, landmark_map: LandmarkMap | None = None,
-                 T_world_cam_init: np.ndarray | None = None, stages: tuple[Callable, ...] | None = None):
+                 T_world_cam_init: np.ndarray | None = None, stages: Stages | None = None):
         """stages: (extract_features, match_points, match_lines, extract_depth_priors), defaults to plvo's."""
         self.calib = calib
         self.cfg = config
         self.K = np.asarray(calib.K, dtype=float)
         self.map = landmark_map if landmark_map is not None else LandmarkMap()
         self.policy = KeyframePolicy(config.tracking)
-        self._extract, self._match_points, self._match_lines, self._depth = stages or _default_stages()
+        self._extract, self._match_points, self._match_lines, self._depth = (
+            stages if stages is not None else _default_stages())
         self._T_init = np.array(calib.T_cam0_cam if T_world_cam_init is None else T_world_cam_init, dtype=float)
         self._T_cam_cam0 = se3.inv(np.asarray(calib.T_cam0_cam, dtype=float))
         self._prev: _FrameState | None = None
@@ -165,13 +170,12 @@ class Frontend:
         if self._prev is None:
             res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
         else:
-            res = self._track(frame, feats, timings)
+            res = self._track(frame, feats, timings, self._prev)
         timings["total"] = time.perf_counter() - t0
         return dataclasses.replace(res, timings=timings)
 
-    def _track(self, frame: Frame, feats: FeatureSet, timings: dict[str, float]) -> FrontendResult:
-        prev = self._prev
-        self._reanchor_to_map()
+    def _track(self, frame: Frame, feats: FeatureSet, timings: dict[str, float], prev: _FrameState) -> FrontendResult:
+        self._reanchor_to_map(prev)
         T_pred = prev.T_world_cam @ self._velocity
         t = time.perf_counter()
         pm, lm = self._match(prev, feats, T_pred)
@@ -387,14 +391,14 @@ class Frontend:
         ids = np.array([t.kf_id], np.int64)
         return MapCorrection(RELOCALISED, ids, T_before[None], snap_pose(T)[None])
 
-    def _reanchor_to_map(self) -> None:
+    def _reanchor_to_map(self, prev: _FrameState) -> None:
         """Follow the back end: when it moved the last keyframe, move the previous frame's pose rigidly with it."""
         if self._last_kf_id < 0 or self._last_kf_pose_seen is None:
             return
         T_kf = self.map.keyframe_pose(self._last_kf_id)
         if np.allclose(T_kf, self._last_kf_pose_seen, atol=1e-12):
             return
-        self._prev.T_world_cam = T_kf @ se3.inv(self._last_kf_pose_seen) @ self._prev.T_world_cam
+        prev.T_world_cam = T_kf @ se3.inv(self._last_kf_pose_seen) @ prev.T_world_cam
         self._last_kf_pose_seen = T_kf
 
     # ---- keyframes and landmarks -------------------------------------------------------------------------

@@ -129,7 +129,7 @@ def staircase_route(grid: StreetGrid, length_m: float, rng: np.random.Generator)
     return np.array(pts)
 
 
-def _lap_length(width: float, height: float) -> float:
+def _lap_length(width: np.ndarray, height: np.ndarray) -> np.ndarray:
     """Length of one clockwise lap in the right lane around a width x height rectangle of street centres."""
     return 2.0 * (width + height) - 8.0 * LANE_OFFSET_M - 4.0 * (2.0 - np.pi / 2.0) * TURN_RADIUS_M
 

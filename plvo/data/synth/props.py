@@ -69,8 +69,8 @@ def _icosphere() -> tuple[np.ndarray, np.ndarray]:
     for a, c, e in f:
         ab, bc, ca = mid(a, c), mid(c, e), mid(e, a)
         faces += [[a, ab, ca], [c, bc, ab], [e, ca, bc], [ab, bc, ca]]
-    verts = np.array(verts)
-    return verts / np.linalg.norm(verts, axis=1, keepdims=True), np.array(faces)
+    v = np.array(verts)
+    return v / np.linalg.norm(v, axis=1, keepdims=True), np.array(faces)
 
 
 _SPHERE = _icosphere()

@@ -41,7 +41,8 @@ class Renderer:
         self.K, self.width, self.height = K, width, height
         self.sun = sun_direction(seed)
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles))
+        # open3d's stubs have no Tensor(ndarray) overload; the call is open3d's documented one
+        self.scene.add_triangles(o3d.core.Tensor(town.vertices), o3d.core.Tensor(town.triangles))  # type: ignore[call-overload]
         self._cam_dirs = sensors.camera_rays(K, width, height)
         self._cam_norm = np.linalg.norm(self._cam_dirs, axis=1)
         self._lidar_dirs = sensors.lidar_rays()

@@ -175,6 +175,7 @@ class PoseInterpolator:
         w = (t - self.times[i]) / FRAME_DT  # may leave [0, 1] at the ends: linear extrapolation
         p = self.T[i, :3, 3] * (1.0 - w)[:, None] + self.T[i + 1, :3, 3] * w[:, None]
         inside = np.clip(t, self.times[0], self.times[-1])
+        assert self._slerp is not None, "a trajectory of one pose has no motion to interpolate"
         R = self._slerp(inside).as_matrix()
         out_lo, out_hi = t < self.times[0], t > self.times[-1]
         for mask, k in ((out_lo, 0), (out_hi, n - 2)):  # extrapolate the rotation with the end step's rate

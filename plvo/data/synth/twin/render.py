@@ -160,10 +160,11 @@ class TwinRenderer(Renderer):
         img = radiance.reshape(H, W)
         lower = img[int(self.K[1, 2]):]
         gain = float(np.clip(TARGET_GREY / max(float(lower.mean()), 1e-3), *GAIN_RANGE))
-        img = cv2.GaussianBlur(tone(img * np.float32(gain)) * np.float32(255.0), (0, 0), OPTICS_BLUR_SIGMA_PX)
+        blurred: np.ndarray = cv2.GaussianBlur(tone(img * np.float32(gain)) * np.float32(255.0), (0, 0),
+                                               OPTICS_BLUR_SIGMA_PX)
         start = int(rng.integers(0, NOISE_BANK_EXTRA))
-        img += self._noise[start:start + img.size].reshape(img.shape)
-        image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        blurred += self._noise[start:start + blurred.size].reshape(blurred.shape)
+        image = np.clip(np.rint(blurred), 0, 255).astype(np.uint8)
         depth = t.reshape(H, W).astype(np.float32)
         edges = shadow_edges(cast_shadow.reshape(H, W), depth, normal.reshape(H, W, 3))
         return image, depth, ids.reshape(H, W), edges, gain
@@ -207,8 +208,8 @@ class TwinRenderer(Renderer):
             cosm = np.abs(np.einsum("ij,ij->i", mnormal[mv], d[mv]))
             refl[mv] = self.atlas.mat_lidar[mmat[mv]] * (0.6 + 0.4 * cosm)
         pts = self._lidar_dirs[keep] * rng_m[keep, None]
-        refl = np.round(np.clip(refl[keep], 0.0, 0.99), 2)
-        return np.concatenate([pts, refl[:, None]], axis=1).astype(np.float32), ids[keep]
+        kept = np.round(np.clip(refl[keep], 0.0, 0.99), 2)
+        return np.concatenate([pts, kept[:, None]], axis=1).astype(np.float32), ids[keep]
 
 
 def tone(x: np.ndarray) -> np.ndarray:

@@ -59,7 +59,7 @@ class _Occupancy:
 
     def _cells(self, corners: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray]:
         c = corners.mean(axis=0)
-        grown = c + (corners - c) * (1.0 + pad / max(np.linalg.norm(corners[0] - c), 1e-6))
+        grown = c + (corners - c) * (1.0 + pad / max(float(np.linalg.norm(corners[0] - c)), 1e-6))
         a, e1, e3 = grown[0], grown[1] - grown[0], grown[3] - grown[0]
         n1 = max(2, int(np.linalg.norm(e1) / (0.5 * OCC_RES_M)) + 2)
         n3 = max(2, int(np.linalg.norm(e3) / (0.5 * OCC_RES_M)) + 2)
@@ -124,8 +124,8 @@ def _proposal(layout: Layout, kind: Kind, seed: int, ix: int, iy: int):
     """A cell's proposal: (rng, zone, road sample index, unit vector road->object, base point on the road edge)."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, kind.tag, ix + (1 << 20), iy + (1 << 20)]))
     q = (np.array([ix, iy]) + rng.uniform(0.0, 1.0, 2)) * kind.spacing
-    d, k = layout.nearest(q)
-    k = int(k[0])
+    d, ks = layout.nearest(q)
+    k = int(ks[0])
     away = q - layout.xy[k]
     norm = float(np.linalg.norm(away))
     if norm < 1e-6:

@@ -94,7 +94,8 @@ class Traffic:
         self.scenes = []
         for s in SHAPES:
             scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.core.Tensor(s.vertices), o3d.core.Tensor(s.triangles))
+            # open3d's stubs have no Tensor(ndarray) overload; the call is open3d's documented one
+            scene.add_triangles(o3d.core.Tensor(s.vertices), o3d.core.Tensor(s.triangles))  # type: ignore[call-overload]
             self.scenes.append(scene)
         self.movers = self._draw(n_movers, seed)
 
