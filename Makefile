@@ -1,8 +1,11 @@
 # The two commands of the README. ARGS passes options to plvo-viz, e.g. make run ARGS="--seq 04 --root ../shared/data/kitti".
-.PHONY: run test bench
+.PHONY: run test bench lint
 run:
 	bash scripts/setup.sh && .venv/bin/plvo-viz $(ARGS)
 test:
 	bash scripts/setup.sh --test && .venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
 bench:
 	bash scripts/setup.sh && .venv/bin/plvo bench $(ARGS)
+# Style (ruff, the rules in pyproject.toml) and types (mypy on plvo/, the settings in pyproject.toml)
+lint:
+	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app tests scripts && .venv/bin/mypy plvo
