@@ -2,8 +2,10 @@
 .PHONY: run test bench lint
 run:
 	bash scripts/setup.sh && .venv/bin/plvo-viz $(ARGS)
+# The lint and type checks first (seconds), then the suite
 test:
-	bash scripts/setup.sh --test && .venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
+	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app tests scripts && .venv/bin/mypy plvo && \
+	.venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
 bench:
 	bash scripts/setup.sh && .venv/bin/plvo bench $(ARGS)
 # Style (ruff, the rules in pyproject.toml) and types (mypy on plvo/, the settings in pyproject.toml)

@@ -9,7 +9,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from plvo.geometry import se3
-from plvo.results import TrackingResult
+from plvo.tracking.frontend import FrontendResult
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration
 
@@ -19,13 +19,13 @@ class FramePoses:
         self._ref: dict[int, tuple[int, np.ndarray]] = {}  # frame -> (keyframe id, T_kf_cam)
         self._kf = -1
 
-    def add(self, frame_index: int, res: TrackingResult, map_: LandmarkMap) -> None:
+    def add(self, frame_index: int, res: FrontendResult, map_: LandmarkMap) -> None:
         """The frame's tracked pose relative to its reference keyframe, taken before inline workers move that
         keyframe (a keyframe frame is its own reference)."""
-        T = np.asarray(res.T_world_cam, float)
+        T = np.asarray(res.T_world_cam, dtype=np.float64)
         if res.keyframe is not None:
             self._kf = res.keyframe.kf_id
-            T_ref = np.asarray(res.keyframe.T_world_cam, float)
+            T_ref = np.asarray(res.keyframe.T_world_cam, dtype=np.float64)
         else:
             T_ref = map_.keyframe_pose(self._kf)
         self._ref[frame_index] = (self._kf, se3.inv(T_ref) @ T)

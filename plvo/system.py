@@ -41,7 +41,7 @@ from plvo.recording import NullRecorder, Recorder, RunInfo
 from plvo.results import KeyframeResult, TimingResult, TrackingResult
 from plvo.scheduler import Lags, Scheduler, drop_unreachable
 from plvo.timing import StageClock, timing_summary
-from plvo.tracking.frontend import Frontend
+from plvo.tracking.frontend import Frontend, FrontendResult
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
 from plvo.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
@@ -216,14 +216,14 @@ class System:
             self._frame_poses.add(frame.index, res, frontend.map)
             if res.keyframe is not None:
                 keyframe = self._on_keyframe(frame, res)
-        seconds = dict(self._clock.seconds)
-        self.record.add_timings(seconds)
-        timing = TimingResult(frame.index, seconds)
+        stages = dict(self._clock.seconds)
+        self.record.add_timings(stages)
+        timing = TimingResult(frame.index, stages)
         self.recorder.on_stage(frame.index, timing)
         self.frames_done += 1
         return StepOutput(frame.index, res, keyframe, timing)
 
-    def _on_keyframe(self, frame: Frame, res: TrackingResult) -> KeyframeResult:
+    def _on_keyframe(self, frame: Frame, res: FrontendResult) -> KeyframeResult:
         kf = res.keyframe
         assert kf is not None and self._frontend is not None
         keyframe = KeyframeResult(frame.index, kf.kf_id, np.asarray(kf.T_world_cam), res.keyframe_reason)

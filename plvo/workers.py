@@ -256,7 +256,7 @@ class OrderedWorker:
         self.timeout_s = float(timeout_s)
         self._outstanding: collections.deque[Any] = collections.deque()  # jobs submitted, output not taken
         self._done: collections.deque[Any] = collections.deque()  # inline outputs
-        self._core = None
+        self._core: Any = None
         self._thread: threading.Thread | None = None
         self._link: _ProcessLink | None = None
         self._failed: str = ""
@@ -381,6 +381,7 @@ class OrderedWorker:
             return ForkingPickler.loads(item) if isinstance(item, bytes) else item
 
     def _ended(self, what: str, partial: bool) -> WorkerError:
+        assert self._link is not None
         how = _how_it_ended(self._link.ended())
         pid = self._link.proc.pid
         while_ = " while sending its result" if partial else ""

@@ -5,8 +5,8 @@ features_repair, features_lbd, features_1241x376 (the budget's image size), matc
 measured on their own; pnpl, matching_pnpl, scale_correction, bundle_adjustment, scale_correction_ba, backend,
 loop_query, loop_verify, loop_correct, loop_apply, loop_global_ba, loop, as the System records them in a whole
 run (the loop correction stages over accepted loops only: bench a sequence with a revisit for them). Each has n,
-median_ms, p90_ms, mean_ms, max_ms and the design's budget with within_budget (median). The whole system: frames a second
-with recording off and with a Rerun recording on (the overhead in %, .rrd bytes a frame); peak memory; the
+median_ms, p90_ms, mean_ms, max_ms and the design's budget with within_budget (median). The whole system: frames
+a second with recording off and with a Rerun recording on (the overhead in %, .rrd bytes a frame); peak memory; the
 machine, its load average and thread settings, library versions, git revision and command line.
 
 Default input: the real frames of KITTI odometry sequence 04 in ../shared/data/kitti (or $KITTI_ROOT), else the
@@ -195,7 +195,8 @@ def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, 
               "config": config_to_dict(cfg), "provenance": provenance.finish(report["provenance"])}
     write_text_atomic(out, json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
     f = report.get("final") or {}
-    print(f"soak {dataset.sequence}: {report['fps']:.2f} frames/s overall, windows median {report['fps_window_median']} "
+    print(f"soak {dataset.sequence}: {report['fps']:.2f} frames/s overall, windows median "
+          f"{report['fps_window_median']} "
           f"worst {report['fps_window_worst']}; RSS {report['rss_mb_at']}; ATE {f.get('ate_m')} m, "
           f"devkit {f.get('t_err_pct')} %; recording {report['recording']['bytes']} bytes")
     print(f"written: {out}")

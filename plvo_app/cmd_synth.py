@@ -63,7 +63,8 @@ def _town_frames(text) -> int:
     try:
         return int(text)
     except ValueError:
-        raise SynthError(f"--frames {text!r}: the town takes a number of frames (A:B ranges are for --follow)") from None
+        raise SynthError(f"--frames {text!r}: the town takes a number of frames (A:B ranges are for --follow)") \
+            from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,10 +20,10 @@ from __future__ import annotations
 
 import argparse
 import ast
-from dataclasses import replace
 import logging
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from plvo import provenance
@@ -76,7 +76,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="override a plvo config value for every plvo run, e.g. orb.n_features=1500 (repeatable)")
     p.add_argument("--out", type=Path, default=Path("results/eval"), help="output folder (default: %(default)s)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="local worker processes (or CPUs of a local Ray); 1 runs in this process (default: %(default)s)")
+                   help="local worker processes (or CPUs of a local Ray); 1 runs in this process "
+                        "(default: %(default)s)")
     p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                    help="fan out over Ray: a cluster ADDRESS for ray.init, or 'local' (also the bare flag); a task "
                         "whose node dies is run again on another; the data must be on a path every node sees")
@@ -229,5 +230,6 @@ def run_run(args: argparse.Namespace) -> int:
     report = build_report(results)
     paths = write_report(report, args.out, plots=not args.no_plots, started=started)
     print(report_markdown(report))
-    print(f"wrote {paths['markdown']} and {paths['json']}" + ("" if args.no_plots else f", plots in {args.out / 'plots'}"))
+    plots = "" if args.no_plots else f", plots in {args.out / 'plots'}"
+    print(f"wrote {paths['markdown']} and {paths['json']}{plots}")
     return 0 if all(r.ok for r in results) else 1

@@ -79,7 +79,8 @@ class RrdFileSink:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             while True:
                 try:
-                    self._file = open(self.path, "xb", buffering=0)  # unbuffered: a failed write raises in write()
+                    # unbuffered: a failed write raises in write(); closed by close() or on a failed write
+                    self._file = open(self.path, "xb", buffering=0)  # noqa: SIM115
                     break
                 except FileExistsError:
                     if not next_free:

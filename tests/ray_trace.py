@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 from plvo.eval.tasks import RunSpec, TaskOutput, execute_task
 
@@ -28,7 +29,7 @@ def traced_task(spec: RunSpec) -> TaskOutput:
 def starts(path: str | os.PathLike[str]) -> list[tuple[str, str]]:
     """The trace's (task, node id) lines, in order."""
     try:
-        text = open(path).read()
+        text = Path(path).read_text()
     except FileNotFoundError:
         return []
     return [tuple(line.split()) for line in text.splitlines() if line.strip()]

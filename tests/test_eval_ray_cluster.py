@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 
 import pytest
-
 import ray_trace
 from faults_table import fault, one_error_line
+
 from plvo.eval import runner
 from plvo_app.cli import main
 

@@ -43,7 +43,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
     ready: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
 
-    def hand_over(item: Frame) -> bool:
+    def hand_over(item: Any) -> bool:
         while not stop.is_set():
             try:
                 ready.put(item, timeout=0.2)
@@ -65,7 +65,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
                 started.append((frame, prepare(frame)))
                 if len(started) > 1 and not hand_over(finish(*started.popleft())):
                     return
-            while started:
+            while started and finish is not None:  # started is empty without finish
                 if not hand_over(finish(*started.popleft())):
                     return
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer

@@ -237,7 +237,8 @@ def bench_registration(frames: Sequence[Frame], cfg: SystemConfig, repeat: int =
         init, how = _registration_init(frames[a], frames[b], T_cv)
         inits.add(how)
         for _ in range(repeat):
-            t, res = _timed(lambda: align(scan(frames[b]), scan(frames[a]), init, cfg.registration, T_cv))
+            t, res = _timed(lambda a=a, b=b, init=init, T_cv=T_cv: align(scan(frames[b]), scan(frames[a]), init,
+                                                                          cfg.registration, T_cv))
             seconds.append(t)
             converged += int(res.converged)
     return seconds, {"init": ",".join(sorted(inits)), "converged": converged, "runs": len(seconds)}
@@ -452,13 +453,13 @@ def deployed_figures(dataset, cfg: SystemConfig, recorder_factory: Callable[[int
     # Each run against the KISS-ICP run right after it: a shared machine's speed drifts between runs by more than
     # the two differ, so the ratio of neighbours is the steadier figure.
     pairs = [{"plvo_fps": round(run.fps, 3), "kiss_icp_fps": None if k is None else round(k.fps, 3),
-              "plvo_setup_s": round(run.setup_s, 3), "kiss_icp_setup_s": None if k is None else round(k.setup_s, 3),
+              "plvo_setup_s": _rounded(run.setup_s), "kiss_icp_setup_s": None if k is None else round(k.setup_s, 3),
               "ratio": None if k is None else round(run.fps / k.fps, 3),
               # the whole call: with fresh processes also their start, unpickling, closing and exit
               "plvo_call_s": round(c[0], 3), "kiss_icp_call_s": round(c[1], 3)}
              for run, k, c in zip(runs, kiss, calls)]
     ratios = [p["ratio"] for p in pairs if p["ratio"] is not None]
-    fps = _median([run.fps for run in runs])
+    fps = float(np.median([run.fps for run in runs]))
     kfps = _median([k.fps for k in kiss_ok])
     where = "each run in a fresh process, as plvo-viz runs" if reopen is not None else "in the bench's process"
     return {"how": "the config as given, recording on, frames read from disk (prefetched) as plvo-viz does; KISS-ICP "
@@ -469,18 +470,22 @@ def deployed_figures(dataset, cfg: SystemConfig, recorder_factory: Callable[[int
                    f"pipeline); ratio = plvo fps / KISS-ICP fps of the same run; medians over the runs; {where}",
             "fresh_processes": reopen is not None,
             "fps": round(fps, 3),
-            "setup_s": round(_median([run.setup_s for run in runs]), 3),
-            "workers_ready_s": round(_median([s["workers_ready_s"] for s in summaries]), 3),
+            "setup_s": _rounded(_median([run.setup_s for run in runs if run.setup_s is not None])),
+            "workers_ready_s": _rounded(_median([s["workers_ready_s"] for s in summaries])),
             "kiss_icp_fps": None if kfps is None else round(kfps, 3),
-            "kiss_icp_setup_s": round(_median([k.setup_s for k in kiss_ok]), 3) if kiss_ok else None,
+            "kiss_icp_setup_s": _rounded(_median([k.setup_s for k in kiss_ok])),
             "at_least_kiss_icp": None if kfps is None else bool(fps >= kfps),
-            "ratio_to_kiss_icp": round(_median(ratios), 3) if ratios else None,
+            "ratio_to_kiss_icp": _rounded(_median(ratios)),
             "ratio_to_kiss_icp_runs": ratios,
             "pairs": pairs, "runs": summaries, "kiss_icp_runs": [None if k is None else k.summary() for k in kiss]}
 
 
 def _median(values: Sequence[float]) -> float | None:
     return float(np.median(values)) if len(values) else None
+
+
+def _rounded(value: float | None, digits: int = 3) -> float | None:
+    return None if value is None else round(value, digits)
 
 
 def _deployed_run(reopen: Callable[[], Any], cfg: SystemConfig, recorder_factory, info: RunInfo | None,

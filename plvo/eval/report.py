@@ -83,9 +83,9 @@ def build_report(results: Sequence[TaskResult]) -> Report:
     evaluations = {}
     for setting in settings:
         pairs = {seq: poses[setting][seq] for seq in sequences if seq in poses[setting]}
-        evaluations[setting] = evaluate(pairs) if pairs else None
-        if evaluations[setting] is not None:
-            cells[setting].update({ev.name: ev for ev in evaluations[setting].sequences})
+        evaluation = evaluations[setting] = evaluate(pairs) if pairs else None
+        if evaluation is not None:
+            cells[setting].update({ev.name: ev for ev in evaluation.sequences})
     return Report(settings, sequences, evaluations, cells, tuple(results), poses)
 
 
@@ -115,7 +115,7 @@ def table_values(report: Report, key: str, getter) -> dict[str, dict[str, float 
         ev = report.evaluations[setting]
         pooled = None if ev is None else (ev.short if key.startswith("short") else ev.kitti)
         col["all"] = None if pooled is None else _num(getter(pooled))
-        vals = [col[s] for s in report.sequences if col[s] is not None]
+        vals = [v for v in (col[s] for s in report.sequences) if v is not None]
         complete = len(vals) == len(report.sequences)
         col["mean"] = float(np.mean(vals)) if vals and complete else None
         out[setting] = col

@@ -86,7 +86,8 @@ def execute(
     names = [(s.setting, s.source.name) for s in specs]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
-        raise PlvoError(f"two runs would write the same folder runs/{dup[0]}/{dup[1]}: give the sequences distinct labels")
+        raise PlvoError(f"two runs would write the same folder runs/{dup[0]}/{dup[1]}: give the sequences distinct "
+                        "labels")
     out_dir = str(out_dir)
     results: dict[int, TaskResult] = {}
     todo = []

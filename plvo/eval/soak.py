@@ -12,10 +12,10 @@ discarded, the tracking losses, and the final trajectory's figures (ATE, devkit,
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,8 @@ def tree_rss_mb() -> tuple[float, float, float | None, list[float]]:
     me = psutil.Process(os.getpid())
     procs = [me, *me.children(recursive=True)]
     own = me.memory_info().rss
-    total, pss, children = 0, 0, []
+    total, children = 0, []
+    pss: int | None = 0
     for p in procs:
         try:
             rss = p.memory_info().rss
@@ -186,7 +187,7 @@ def _windows(tap: SoakTap, t0: float, gt, index: dict[int, int], window: int) ->
     samples = {s["frames"]: s for s in tap.samples}
     for a in range(0, len(tap.frames) - window + 1, window):
         b = a + window
-        w = {"first_frame": tap.frames[a], "last_frame": tap.frames[b - 1],
+        w: dict[str, Any] = {"first_frame": tap.frames[a], "last_frame": tap.frames[b - 1],
              "fps": round(window / max(ends[b] - ends[a], 1e-9), 3)}
         w.update({k: v for k, v in samples.get(b, {}).items() if k != "frames"})
         if gt is not None:
@@ -244,7 +245,8 @@ def _detection(tap: SoakTap, gt: np.ndarray, index: dict[int, int], config: Syst
 
     kf_frame = {k: index[f] for k, f in tap.kf_frame.items() if f in index}
     accepted = [(r.query_keyframe, r.match_keyframe) for r in tap.loops if r.accepted]
-    stats = detection_stats(gt, kf_frame, accepted, config.loop.min_keyframe_gap, config.loop.loop_cooldown)
+    stats: dict[str, Any] = dict(detection_stats(gt, kf_frame, accepted, config.loop.min_keyframe_gap,
+                                                 config.loop.loop_cooldown))
     refused = [r for r in tap.loops if not r.accepted and REPEATED_PLACE in (r.reason or "")]
     stats["n_refused_by_odometry"] = len(refused)
     stats["n_refused_after_geometry"] = sum(1 for r in refused if r.n_inliers > 0)
