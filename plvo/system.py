@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from plvo.config import SystemConfig
+from plvo.data.prefetch import prefetched
 from plvo.depth.extract import extract_depth
 from plvo.features.extract import extract_features
 from plvo.features.matching import match_lines, match_points
@@ -45,7 +46,7 @@ from plvo.tracking.frontend import Frontend, FrontendResult
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
 from plvo.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
-from plvo.workers import OrderedWorker
+from plvo.workers import START_TIMEOUT_S, OrderedWorker
 
 log = logging.getLogger(__name__)
 
@@ -135,8 +136,10 @@ class System:
 
     def read_ahead(self, dataset) -> Iterator[Frame]:
         """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead)."""
-        lookahead = self._lookahead or Lookahead(None, None, self._read_timeout_s)
-        return lookahead.frames(dataset)
+        if self._lookahead is None:  # the stages are built at the first step: prepared from then on
+            return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS,
+                              timeout_s=self._read_timeout_s)
+        return self._lookahead.frames(dataset)
 
     # ---- wiring --------------------------------------------------------------------------------------------
     def _build(self, calib: Calibration) -> None:
@@ -178,8 +181,9 @@ class System:
 
     @property
     def _read_timeout_s(self) -> float:
-        """A frame's wait includes its features' (bounded by the workers' timeout): the read gets a minute more."""
-        return self.config.backend.worker_timeout_s + 60.0
+        """A frame's wait includes its features' (bounded by the workers' timeout, and the first one by the features
+        process's start): the read gets a minute more."""
+        return max(self.config.backend.worker_timeout_s, START_TIMEOUT_S) + 60.0
 
     def _clock_add(self, stage: str, seconds: float) -> None:
         self._clock.add(stage, seconds)

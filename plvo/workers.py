@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 MODES = ("inline", "thread", "process")
 DEFAULT_TIMEOUT_S = 300.0  # config.BackendConfig.worker_timeout_s's default (the reason is given there)
 _STOP = None
+_CLOSE = object()  # to the sending thread alone: end without telling the worker
 _READY = "ready"  # a worker process's first message: its core is made (its imports done)
 _PR_SET_PDEATHSIG, _PR_SET_NAME = 1, 15  # linux/prctl.h
 _POLL_S = 0.5  # how often a wait looks at the clock and at the worker's liveness
@@ -82,7 +83,7 @@ class _Failure:
     """What a worker sends back instead of an output when its core raised."""
 
     def __init__(self, job: Any, exc: BaseException):
-        self.where = _describe(job)
+        self.where = _describe(job) if job is not None else ""
         self.message = f"{type(exc).__name__}: {exc}".splitlines()[0]
         self.trace = traceback.format_exc()
 
@@ -143,7 +144,7 @@ def _serve(jobs: Connection, outputs: Connection, name: str, factory: Callable, 
         core = factory(*args)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent
         _send(outputs, (_Failure(None, exc), capture.records))
-        return
+        os._exit(1)  # a start that failed is no clean exit: the parent names the failure it was sent
     lower_priority(niceness)  # after the imports, which the caller waits for; threads made later inherit it
     _open3d_single_threaded()
     _send(outputs, (_READY, capture.records))
@@ -151,7 +152,7 @@ def _serve(jobs: Connection, outputs: Connection, name: str, factory: Callable, 
     while True:
         try:
             job = jobs.recv()
-        except EOFError:  # the parent closed its end (or ended): nobody wants the outputs
+        except (EOFError, OSError):  # the parent closed its end (or ended): nobody wants the outputs
             job = _STOP
         if job is _STOP:
             # Every output was sent (the sends are synchronous); exit at once: the interpreter's teardown of
@@ -169,7 +170,12 @@ def _serve(jobs: Connection, outputs: Connection, name: str, factory: Callable, 
         except BaseException as exc:  # noqa: BLE001 - reported to the parent
             out = _Failure(job, exc)
         records, capture.records = capture.records, []
-        _send(outputs, (out, records))
+        try:
+            _send(outputs, (out, records))
+        except (OSError, ValueError):  # the parent is gone
+            os._exit(1)
+        except Exception as exc:  # noqa: BLE001 - e.g. an output that cannot be pickled: the parent is told
+            _send(outputs, (_Failure(job, exc), records))
 
 
 class _ProcessLink:
@@ -200,17 +206,23 @@ class _ProcessLink:
         self._outbox.put(job)
 
     def _send_loop(self) -> None:
-        while True:
-            job = self._outbox.get()
-            try:
-                _send(self._jobs, job)
-            except (OSError, ValueError):  # the worker is gone (its end closed): take() reports how it ended
-                return
-            except Exception as exc:  # noqa: BLE001 - e.g. a job that cannot be pickled: the caller is told
-                self.inbox.put(_Failure(job, exc))
-                return
-            if job is _STOP:
-                return
+        """Each thread closes its own end when it is done, so no end is closed under a read or write in progress."""
+        try:
+            while True:
+                job = self._outbox.get()
+                if job is _CLOSE:
+                    return
+                try:
+                    _send(self._jobs, job)
+                except (OSError, ValueError):  # the worker is gone (its end closed): take() reports how it ended
+                    return
+                except Exception as exc:  # noqa: BLE001 - e.g. a job that cannot be pickled: the caller is told
+                    self.inbox.put(_Failure(job, exc))
+                    return
+                if job is _STOP:
+                    return
+        finally:
+            self._jobs.close()
 
     def _read_loop(self) -> None:
         try:
@@ -218,8 +230,12 @@ class _ProcessLink:
                 self.inbox.put(self._outputs.recv_bytes())
         except EOFError:
             self.inbox.put(_Ended(partial=False))
-        except OSError:  # "got end of file during message", or the connection closed by close()
+        except OSError:  # "got end of file during message"
             self.inbox.put(_Ended(partial=True))
+        except BaseException as exc:  # noqa: BLE001 - e.g. no memory for a large output: the caller is told
+            self.inbox.put(_Failure(None, exc))
+        finally:
+            self._outputs.close()
 
     def ended(self, grace_s: float = 5.0) -> int | None:
         """Reap the worker process (it has ended or is ending) -> its exit code (None if it did not end)."""
@@ -232,13 +248,15 @@ class _ProcessLink:
         self.proc.join(timeout=5)
 
     def close(self, grace_s: float = 10.0) -> None:
-        """Ask the worker to stop, give it `grace_s`, then kill it; reap it and close the pipes."""
-        if self.proc.is_alive():
+        """Ask the worker to stop and give it `grace_s` (0: jobs still in flight are abandoned, so it is killed at
+        once), then kill it and reap it; the threads end with the pipes (the reader at the worker's end)."""
+        if self.proc.is_alive() and grace_s > 0 and self._sender.is_alive():
             self._outbox.put(_STOP)
             self.proc.join(timeout=grace_s)
         self.kill()
-        for conn in (self._jobs, self._outputs):
-            conn.close()
+        self._outbox.put(_CLOSE)  # a sender still waiting for a job ends
+        self._sender.join(timeout=5)
+        self._reader.join(timeout=5)
 
 
 class OrderedWorker:
@@ -248,7 +266,8 @@ class OrderedWorker:
                  timeout_s: float = DEFAULT_TIMEOUT_S):
         """niceness: the worker process's (`lower_priority`) once its core is made; not applied inline or in a
         thread, which run in the caller's thread or share its process. timeout_s: how long `take` waits without any
-        message from the worker before the worker is failed and ended (its start: at least START_TIMEOUT_S)."""
+        message from the worker before the worker is failed (a process also ended; its start is given at least
+        START_TIMEOUT_S)."""
         if mode not in MODES:
             raise ValueError(f"worker mode must be one of {MODES}, got {mode!r}")
         self.name = name
@@ -261,6 +280,8 @@ class OrderedWorker:
         self._link: _ProcessLink | None = None
         self._failed: str = ""
         self._ready = mode != "process"
+        # The features worker is taken from the reading thread while the tracker's thread checks that it lives
+        self._lock = threading.RLock()
         if mode == "inline":
             self._core = factory(*args)
         elif mode == "thread":
@@ -318,22 +339,43 @@ class OrderedWorker:
         now: where the caller is (e.g. "frame 12"), named when no job is outstanding."""
         if self._failed:
             raise WorkerError(self._failed)
-        if self._link is not None and not self._link.proc.is_alive():
-            if self._outstanding:
-                what = _describe(self._outstanding[0])
-            else:
-                what = f"its next job (seen at {now})" if now else "its next job"
-            raise self._ended(what, False)
+        link = self._link
+        if link is None or link.proc.is_alive():
+            return
+        with self._lock:
+            if self._failed:
+                raise WorkerError(self._failed)
+            what = _describe(self._outstanding[0]) if self._outstanding else (
+                f"its next job (seen at {now})" if now else "its next job")
+            try:  # what it sent before it ended says more: a failure to start, a result cut off
+                item = self._outputs.get(timeout=1.0)
+            except queue.Empty:
+                item = None
+            if isinstance(item, _Failure):
+                raise self._failure(f"the {self.name} failed on {item.where or what}: {item.message}", item.trace)
+            if isinstance(item, bytes):
+                out = ForkingPickler.loads(item)
+                if isinstance(out, tuple) and out and isinstance(out[0], _Failure):
+                    f = out[0]
+                    raise self._failure(f"the {self.name} failed {'to start' if not f.where else 'on ' + f.where}: "
+                                        f"{f.message}", f.trace)
+            raise self._ended(what, isinstance(item, _Ended) and item.partial)
 
     def take(self) -> Any:
         """The output of the oldest job not yet taken, waiting for it; WorkerError when the core failed."""
+        with self._lock:
+            return self._take()
+
+    def _take(self) -> Any:
         if not self._outstanding:
             raise RuntimeError(f"{self.name}: nothing submitted to take")
-        job = self._outstanding.popleft()
+        job = self._outstanding[0]
         if self.mode == "inline":
+            self._outstanding.popleft()
             return self._done.popleft()
         self.wait_ready()
         out, records = self._next(_describe(job))
+        self._outstanding.popleft()
         self._relog(records)
         if isinstance(out, _Failure):
             raise self._failure(f"the {self.name} failed on {out.where or _describe(job)}: {out.message}", out.trace)
@@ -372,11 +414,13 @@ class OrderedWorker:
                 if self._thread is not None and not self._thread.is_alive():
                     raise self._failure(f"the {self.name} thread ended before {what}") from None
                 if waited >= bound_s:
-                    raise self._unanswered(what, waited) from None
+                    raise self._unanswered(what, bound_s) from None
                 continue
             if isinstance(item, _Ended):
                 raise self._ended(what, item.partial)
-            if isinstance(item, _Failure):  # the sending thread's: a job that could not be sent
+            if isinstance(item, _Failure):  # the sending thread's (a job that could not be sent) or the reading one's
+                if not item.where:
+                    raise self._failure(f"the {self.name} worker's output could not be read: {item.message}")
                 raise self._failure(f"the {self.name} worker could not be sent {item.where}: {item.message}")
             return ForkingPickler.loads(item) if isinstance(item, bytes) else item
 
@@ -387,12 +431,14 @@ class OrderedWorker:
         while_ = " while sending its result" if partial else ""
         return self._failure(f"the {self.name} worker process (pid {pid}) {how}{while_} before {what}")
 
-    def _unanswered(self, what: str, waited: float) -> WorkerError:
-        where = f"worker process (pid {self._link.proc.pid})" if self._link is not None else "thread"
-        err = self._failure(f"the {self.name} {where} sent nothing for {waited:.0f} s while {what} was due "
-                            "(stopped or deadlocked; the bound is backend.worker_timeout_s); ended it")
-        if self._link is not None:
-            self._link.kill()
+    def _unanswered(self, what: str, bound_s: float) -> WorkerError:
+        if self._link is None:  # a thread cannot be ended: it is left to its core
+            return self._failure(f"the {self.name} thread sent nothing for {bound_s:g} s while {what} was due "
+                                 "(deadlocked? the bound is backend.worker_timeout_s)")
+        err = self._failure(f"the {self.name} worker process (pid {self._link.proc.pid}) sent nothing for "
+                            f"{bound_s:g} s while {what} was due (stopped or deadlocked; the bound is "
+                            "backend.worker_timeout_s); ended it")
+        self._link.kill()
         return err
 
     def _run_thread(self) -> None:
@@ -407,11 +453,13 @@ class OrderedWorker:
             self._outputs.put((out, []))
 
     def close(self) -> None:
-        """Stop the worker; outputs not taken are dropped (after Ctrl-C nobody waits for them)."""
+        """Stop the worker; outputs not taken are dropped (after Ctrl-C nobody waits for them), and a worker process
+        with jobs still in flight is ended at once rather than left to finish them."""
+        abandoned = bool(self._outstanding)
         self._outstanding.clear()
         if self._thread is not None and self._thread.is_alive():
             self._jobs.put(_STOP)
             self._thread.join(timeout=1 if self._failed else 60)  # a hung core's thread cannot be joined
         if self._link is not None:
-            self._link.close()
+            self._link.close(grace_s=0.0 if abandoned or self._failed else 10.0)
             self._link = None

@@ -171,6 +171,11 @@ class RrdFileSink:
         """Write the rest and close the file. A failure not yet raised by `pump` is raised here, once."""
         self._stop.set()
         self._writer.join(timeout=CLOSE_TIMEOUT_S)
+        if self._error is not None and not self._writer.is_alive():  # the writer failed: nothing more is written
+            self._close_file()
+            if not self._reported:
+                self.pump()
+            return
         if self._writer.is_alive():  # its write is blocked: the file cannot be finished from here
             self._error = self._error or RecordingError(
                 f"{self.path}: a write of the recording did not return within {CLOSE_TIMEOUT_S:.0f} s; the "

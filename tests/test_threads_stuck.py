@@ -75,7 +75,9 @@ def test_a_writer_thread_that_fails_unexpectedly_stops_the_run(sink, monkeypatch
 
     monkeypatch.setattr(rrd_sink.RrdFileSink, "_write_pending", broken)
     s = sink()
-    time.sleep(0.3)
+    t0 = time.monotonic()
+    while s._writer.is_alive() and time.monotonic() - t0 < 10:
+        time.sleep(0.02)
     with pytest.raises(RecordingError, match=r"writing the recording failed \(ValueError: encoder exploded\)"):
         s.pump()
 
@@ -83,17 +85,18 @@ def test_a_writer_thread_that_fails_unexpectedly_stops_the_run(sink, monkeypatch
 def test_a_write_that_never_returns_fails_the_close_after_the_bound(sink, monkeypatch):
     from plvo_app import rrd_sink
 
-    release = threading.Event()
+    release, entered = threading.Event(), threading.Event()
     real = rrd_sink.RrdFileSink._write
 
     def blocked(self, chunk, ends):
+        entered.set()
         release.wait()
         real(self, chunk, ends)
 
     monkeypatch.setattr(rrd_sink.RrdFileSink, "_write", blocked)
     monkeypatch.setattr(rrd_sink, "CLOSE_TIMEOUT_S", 1.0)
     s = sink()
-    time.sleep(0.3)  # the writer thread is in its blocked write
+    assert entered.wait(10)  # the writer thread is in its blocked write
     t0 = time.monotonic()
     with pytest.raises(RecordingError, match=r"a write of the recording did not return within 1 s"):
         s.close()

@@ -228,3 +228,20 @@ def test_a_worker_process_reuses_freed_memory_instead_of_faulting_it_in_again():
         assert w.take() < default / 10
     finally:
         w.close()
+
+
+def test_a_core_that_cannot_be_made_is_named_by_the_liveness_check_too():
+    """A run that steps without waiting for the workers (run_dataset) first sees the dead worker in check_alive:
+    the line is the failure it sent, not its exit."""
+    import time
+
+    w = OrderedWorker("back end", StartsSlowly, (-1,), "process")
+    try:
+        t0 = time.monotonic()
+        while w._link is not None and w._link.proc.is_alive() and time.monotonic() - t0 < 60:
+            time.sleep(0.05)
+        with pytest.raises(WorkerError) as err:
+            w.check_alive("frame 0")
+        assert str(err.value) == "the back end failed to start: ImportError: no module named 'open3d'"
+    finally:
+        w.close()

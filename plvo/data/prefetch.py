@@ -75,9 +75,14 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
 
     thread = threading.Thread(target=load, name="plvo-prefetch", daemon=True)
     thread.start()
+    stuck = False
     try:
         for position in range(len(dataset) + 1):
-            item = _next_ready(ready, thread, timeout_s, dataset, position)
+            try:
+                item = _next_ready(ready, thread, timeout_s, dataset, position)
+            except RunFailed:
+                stuck = True
+                raise
             if item is _END:
                 return
             if isinstance(item, BaseException):
@@ -85,7 +90,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
             yield item
     finally:
         stop.set()
-        thread.join(timeout=5)
+        thread.join(timeout=0 if stuck else 5)  # a stuck thread is not waited for
 
 
 def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float | None, dataset,
