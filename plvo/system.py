@@ -256,14 +256,6 @@ class System:
         if self.record.stats.corrections:
             log.info("loop closer corrected the map %d time(s)", self.record.stats.corrections)
 
-    def run(self, frames: Iterable[Frame], info: RunInfo | None = None) -> None:
-        """Start (when `info` is given), step through `frames`, finish; the caller closes."""
-        if info is not None:
-            self.start(info)
-        for frame in frames:
-            self.step(frame)
-        self.finish()
-
     def close(self) -> None:
         for worker in self._workers:
             worker.close()
