@@ -347,19 +347,13 @@ class OrderedWorker:
                 raise WorkerError(self._failed)
             what = _describe(self._outstanding[0]) if self._outstanding else (
                 f"its next job (seen at {now})" if now else "its next job")
-            try:  # what it sent before it ended says more: a failure to start, a result cut off
-                item = self._outputs.get(timeout=1.0)
-            except queue.Empty:
-                item = None
-            if isinstance(item, _Failure):
-                raise self._failure(f"the {self.name} failed on {item.where or what}: {item.message}", item.trace)
-            if isinstance(item, bytes):
-                out = ForkingPickler.loads(item)
-                if isinstance(out, tuple) and out and isinstance(out[0], _Failure):
-                    f = out[0]
-                    raise self._failure(f"the {self.name} failed {'to start' if not f.where else 'on ' + f.where}: "
-                                        f"{f.message}", f.trace)
-            raise self._ended(what, isinstance(item, _Ended) and item.partial)
+            # What it sent before it ended says more (a failure to start or in a job): _next reads it, or raises
+            # the end (cut off mid-message or not) as take() would
+            out, _ = self._next(what)
+            if isinstance(out, _Failure):
+                how = f"on {out.where}" if out.where else "to start"
+                raise self._failure(f"the {self.name} failed {how}: {out.message}", out.trace)
+            raise self._ended(what, False)
 
     def take(self) -> Any:
         """The output of the oldest job not yet taken, waiting for it; WorkerError when the core failed."""
