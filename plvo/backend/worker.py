@@ -79,6 +79,11 @@ class BackendOutput:
     points: np.ndarray
     lines: np.ndarray
     metrics: dict[str, float]
+    # the previous and the newest keyframe's T_world_cam ((2,4,4)) as each stage left them: "tracker" (the window's,
+    # before the back end), "scale" (after the scale correction), "ba" (after the bundle adjustment); a stage that
+    # did not run or whose result was discarded is absent. Their relative motion is what the stage made of the
+    # newest keyframe step; the evaluation's per-stage drift reads it.
+    stage_poses: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class BackendCore:
@@ -104,6 +109,8 @@ class BackendCore:
                 seconds["registration"] = time.perf_counter() - t
             self._last = (job.kf_id, scan)
         scale, ba, after = 1.0, None, None
+        stage_poses: dict[str, np.ndarray] = {"tracker": w.T_world_cam[-2:].copy()} \
+            if len(w.kf_ids) >= 2 else {}
         problem = _problem(w, self.K, self.cfg.backend, (edge,) if edge is not None else ()) if len(w.kf_ids) >= 2 \
             else None
         if problem is not None:
@@ -116,12 +123,14 @@ class BackendCore:
                     problem = _with_values(problem, res)
                     scale = scale_factor(before, res.T_world_cam[newest], problem.T_world_cam[newest - 1])
                     after = res
+                    stage_poses["scale"] = res.T_world_cam[newest - 1:newest + 1].copy()
                 seconds["scale_correction"] = time.perf_counter() - t
             t = time.perf_counter()
             ba = optimize(problem, self.cfg.backend, **self._opt_kwargs())
             seconds["bundle_adjustment"] = time.perf_counter() - t
             if _sane(problem, ba, self.cfg.registration):
                 after = ba
+                stage_poses["ba"] = ba.T_world_cam[newest - 1:newest + 1].copy()
             else:
                 ba = None
         if "bundle_adjustment" in seconds:  # the design's budget is for the two together
@@ -133,7 +142,7 @@ class BackendCore:
             points, lines = after.points[after.point_used], after.lines[after.line_used]
         else:
             points, lines = w.points, w.lines
-        return BackendOutput(job.kf_id, job.frame_index, correction, step, points, lines, _metrics(step))
+        return BackendOutput(job.kf_id, job.frame_index, correction, step, points, lines, _metrics(step), stage_poses)
 
     def _opt_kwargs(self) -> dict:
         return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines,
