@@ -145,6 +145,10 @@ class RegistrationConfig:
     # "inverse": exp(-2 (e_bar/e_hat)^2), so that a registration worse than the tracker's pose gets a small weight
     # (plvo/lidar/registration.py, docs/results/defaults.md); "paper": exp(-2 (e_hat/e_bar)^2) as printed.
     zeta_formula: str = "inverse"
+    # Motion compensation of each scan's sweep before registration (plvo.lidar.deskew), from the tracker's motion:
+    # "auto" deskews the scans the dataset says are not compensated (Dataset.scans_compensated), "on" always,
+    # "off" never.
+    deskew: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -187,6 +191,12 @@ class BackendConfig:
     # than the keyframe spacing, so that the next keyframe's frame is tracked while the back end works instead of
     # waiting for it (docs/results/defaults.md).
     max_lag_frames: int = 6
+    # What a keyframe's scan is registered to for the relative-pose factors (plvo.lidar.local_map): "local_map", a
+    # voxel map of the last local_map_keyframes keyframes' scans in the world frame, or "keyframe", the previous
+    # keyframe's scan alone (NDT keyframe to keyframe).
+    lidar_target: str = "local_map"
+    local_map_keyframes: int = 10
+    local_map_voxel_m: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -234,6 +244,9 @@ class LoopConfig:
     # Two keyframes that see one place are at most this far apart: a longer loop edge is refused, and a candidate
     # the odometry puts further away than its drift bound plus this is refused before verification.
     max_view_m: float = 40.0
+    # Lidar place recognition beside the bags of words (plvo.loop.lidar_place, map-closures' density maps, which
+    # find a place whichever way it is driven), verified by scan registration alone.
+    lidar_place: bool = True
     # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
     # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
     max_lag_frames: int = 20
@@ -267,6 +280,11 @@ ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
     # Not one of the paper's: the scale correction optimisation alone switched off, the registration factors kept in
     # the bundle adjustment (which then fixes the scale itself; see plvo/backend/worker.py).
     "no_scale_step": {"backend": {"scale_correction": False}},
+    # Each lidar-side component alone switched off: the raw (swept) scans, keyframe-to-keyframe NDT instead of the
+    # local map, and loops from the bags of words only (no lidar place recognition).
+    "no_deskew": {"registration": {"deskew": "off"}},
+    "keyframe_ndt": {"backend": {"lidar_target": "keyframe"}},
+    "no_lidar_loops": {"loop": {"lidar_place": False}},
 }
 
 

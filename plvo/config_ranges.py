@@ -85,6 +85,7 @@ RANGES: dict[str, Range] = {
     "depth.reference_ring_spacing_px": POSITIVE, "depth.adapt_min_ratio": Range(1.0),
     "depth.adapt_max_ratio": Range(1.0),
     "backend.iterations": COUNT, "backend.outlier_px": NON_NEGATIVE, "backend.max_lag_frames": COUNT0,
+    "backend.local_map_keyframes": COUNT, "backend.local_map_voxel_m": POSITIVE,
     "backend.worker_timeout_s": POSITIVE,
     "loop.min_keyframe_gap": COUNT0, "loop.min_score": NON_NEGATIVE, "loop.consistency": COUNT,
     "loop.min_inliers": Range(4), "loop.min_neighbour_score": NON_NEGATIVE, "loop.neighbours": COUNT,
@@ -111,7 +112,9 @@ ORDERED: tuple[tuple[str, str], ...] = (
 
 
 # String fields with a fixed set of values.
-CHOICES: dict[str, tuple[str, ...]] = {"backend.executor": ("process", "thread")}
+CHOICES: dict[str, tuple[str, ...]] = {"backend.executor": ("process", "thread"),
+                                       "registration.deskew": ("auto", "on", "off"),
+                                       "backend.lidar_target": ("local_map", "keyframe")}
 
 
 def numeric_fields(cfg: Any) -> dict[str, Any]:

@@ -75,7 +75,7 @@ def test_missing_and_invalid_files(tmp_path):
 def test_ablations_change_what_they_say():
     base = SystemConfig()
     assert set(ABLATIONS) == {"full", "no_depth_priors", "no_scale_correction", "points_only", "tracker_only",
-                              "no_scale_step"}
+                              "no_scale_step", "no_deskew", "keyframe_ndt", "no_lidar_loops"}
     assert with_ablation(base, "full") == base
     assert with_ablation(base, "no_depth_priors").tracking.use_depth_priors is False
     module_off = with_ablation(base, "no_scale_correction").backend
@@ -85,6 +85,9 @@ def test_ablations_change_what_they_say():
     assert with_ablation(base, "points_only").tracking.points_only is True
     alone = with_ablation(base, "tracker_only")
     assert alone.backend.enabled is False and alone.loop.enabled is False and alone.tracking == base.tracking
+    assert with_ablation(base, "no_deskew").registration.deskew == "off" != base.registration.deskew
+    assert with_ablation(base, "keyframe_ndt").backend.lidar_target == "keyframe" != base.backend.lidar_target
+    assert with_ablation(base, "no_lidar_loops").loop.lidar_place is False and base.loop.lidar_place is True
     with pytest.raises(ConfigError, match="unknown ablation"):
         with_ablation(base, "nope")
 
