@@ -24,6 +24,8 @@ class RunOutput:
     n_keyframes: int
     n_lost: int
     finished_at: float = 0.0  # time.perf_counter() once the workers' last results were applied (before closing)
+    # the back end's per-keyframe stage record (plvo.worker_stages.RunRecord.stage_steps; plvo.eval.stage_drift)
+    stage_steps: tuple[dict, ...] = ()
 
 
 def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
@@ -49,4 +51,5 @@ def run_system(system: System, dataset, progress: Callable[[int], object] | None
     finally:
         system.close()
     return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings),
-                     system.map.n_keyframes if system.map is not None else 0, system.n_lost, finished_at)
+                     system.map.n_keyframes if system.map is not None else 0, system.n_lost, finished_at,
+                     tuple(system.record.stage_steps))

@@ -54,7 +54,10 @@ class Frame:
     gt_T_world_cam: (4,4) ground-truth pose of the camera in the world (cam0 of frame 0), or None.
     color: (H,W,3) uint8 RGB of the same (rectified) image when the source is a colour camera, else None; only
     viewers use it, the pipeline works on `image`. scan_time: (N,) float64 seconds of each return relative to the
-    scan's stamp when the source records it (ROS PointCloud2 `t`/`time` fields), else None.
+    frame's `time` when the source records it (ROS PointCloud2 `t`/`time` fields), else None. scan_compensated:
+    False when each return is in the sensor frame at its own time within the sweep (a spinning lidar's raw scan:
+    the twins', KITTI raw's, a bag's with per-point times), so that registration should deskew it first
+    (plvo.lidar.deskew); True when the source delivers it motion-compensated or taken at one instant.
     features: the tracker's features of `image`, extracted ahead of tracking by `System.prepare` (while earlier
     frames are tracked), with features_s the seconds it took; None: the tracker extracts them itself.
     """
@@ -67,6 +70,7 @@ class Frame:
     gt_T_world_cam: np.ndarray | None = None
     color: np.ndarray | None = None
     scan_time: np.ndarray | None = None
+    scan_compensated: bool = True
     features: FeatureSet | None = None
     features_s: float = 0.0
 

@@ -52,6 +52,9 @@ class RunRecord:
     timings: dict[str, list[float]]
     stats: LoopStats = field(default_factory=LoopStats)
     corrections: list[dict[str, Any]] = field(default_factory=list)
+    # One entry a back-end result: the frames of the window's previous and newest keyframe and, by stage ("tracker",
+    # "scale", "ba"), their relative motion T_prev_new (4,4, camera) as that stage left it (plvo.eval.stage_drift).
+    stage_steps: list[dict[str, Any]] = field(default_factory=list)
 
     def add_timings(self, seconds: dict[str, float]) -> None:
         for name, value in seconds.items():
@@ -108,17 +111,27 @@ class BackendStage:
         n = max(2, self._config.backend.window_keyframes)
         ids = np.arange(max(0, kf.kf_id - n + 1), kf.kf_id + 1)
         scan = kf.registration_scan if self._config.backend.registration else None
-        return BackendJob(kf.kf_id, kf.frame_index, scan, self._map.window_data(ids, self._uses_lines))
+        return BackendJob(kf.kf_id, kf.frame_index, scan, self._map.window_data(ids, self._uses_lines), kf.sweep)
 
     def apply(self, out: Any) -> None:
         if out.correction is not None:
             self._map.apply(out.correction)
         if out.step.ba is None and "bundle_adjustment" in out.step.seconds:
             self._record.stats.backend_discarded += 1
+        self._record_stages(out)
         self._record.add_timings(out.step.seconds)
         self._emit(out.frame_index, [self._graph.result(out.frame_index, out.step.scale),
                                      MapResult(out.frame_index, out.points, out.lines),
                                      MetricsResult(out.frame_index, out.metrics)])
+
+
+    def _record_stages(self, out: Any) -> None:
+        if not out.stage_poses or len(out.stage_kf_ids) != 2:
+            return
+        prev, new = (int(k) for k in out.stage_kf_ids)
+        steps = {stage: np.linalg.inv(T[0]) @ T[1] for stage, T in out.stage_poses.items()}
+        self._record.stage_steps.append({"frames": (self._map.keyframe_frame(prev), self._map.keyframe_frame(new)),
+                                         "steps": steps})
 
 
 class LoopStage:

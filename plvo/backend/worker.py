@@ -37,6 +37,8 @@ from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
+from plvo.lidar.deskew import Sweep
+from plvo.lidar.local_map import LocalMap
 from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
 from plvo.results import EDGE_ODOMETRY
 from plvo.tracking.corrections import BACKEND, GraphEdge, MapCorrection, WindowData
@@ -54,6 +56,7 @@ class BackendJob:
     frame_index: int
     scan: np.ndarray | None
     window: WindowData
+    sweep: Sweep | None = None  # how the scan is deskewed (None: it is registered as it is)
 
 
 @dataclass(frozen=True)
@@ -82,8 +85,9 @@ class BackendOutput:
     # the previous and the newest keyframe's T_world_cam ((2,4,4)) as each stage left them: "tracker" (the window's,
     # before the back end), "scale" (after the scale correction), "ba" (after the bundle adjustment); a stage that
     # did not run or whose result was discarded is absent. Their relative motion is what the stage made of the
-    # newest keyframe step; the evaluation's per-stage drift reads it.
+    # newest keyframe step; the evaluation's per-stage drift reads it. stage_kf_ids: those two keyframes' ids.
     stage_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    stage_kf_ids: tuple[int, ...] = ()
 
 
 class BackendCore:
@@ -95,6 +99,9 @@ class BackendCore:
         self.T_cam_velo = np.asarray(calib.T_cam_velo, dtype=float)
         self.use_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
         self._last: tuple[int, PreparedScan] | None = None  # the previous keyframe's id and prepared scan
+        b = config.backend
+        self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration) \
+            if b.lidar_target == "local_map" else None
 
     def process(self, job: BackendJob) -> BackendOutput:
         """Register, correct scale, bundle-adjust one window -> BackendOutput (the map is not touched)."""
@@ -103,8 +110,12 @@ class BackendCore:
         t = time.perf_counter()
         reg, edge = None, None
         if self.cfg.backend.registration and job.scan is not None:
-            scan = prepare(job.scan, self.cfg.registration, f"frame {job.frame_index} scan")
-            if self._last is not None and self._last[0] in set(w.kf_ids.tolist()):
+            raw = job.scan if job.sweep is None else job.sweep.apply(job.scan)
+            scan = prepare(raw, self.cfg.registration, f"frame {job.frame_index} scan")
+            if self._local_map is not None:
+                reg, edge = self._register_to_map(w, job.kf_id, scan)
+                seconds["registration"] = time.perf_counter() - t
+            elif self._last is not None and self._last[0] in set(w.kf_ids.tolist()):
                 reg, edge = self._register(w, self._last, (job.kf_id, scan))
                 seconds["registration"] = time.perf_counter() - t
             self._last = (job.kf_id, scan)
@@ -142,7 +153,8 @@ class BackendCore:
             points, lines = after.points[after.point_used], after.lines[after.line_used]
         else:
             points, lines = w.points, w.lines
-        return BackendOutput(job.kf_id, job.frame_index, correction, step, points, lines, _metrics(step), stage_poses)
+        return BackendOutput(job.kf_id, job.frame_index, correction, step, points, lines, _metrics(step), stage_poses,
+                             tuple(int(k) for k in w.kf_ids[-2:]))
 
     def _opt_kwargs(self) -> dict:
         return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines,
@@ -160,6 +172,38 @@ class BackendCore:
         log.debug("registration kf %d -> %d: %s, e_hat %.3f e_bar %.3f zeta %.3f (%.0f ms)", j, i, reg.method,
                   reg.e_hat, reg.e_bar, zeta, 1e3 * reg.time_s)
         return reg, GraphEdge(i, j, reg.T_camdst_camsrc, zeta, EDGE_ODOMETRY)
+
+    def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan
+                         ) -> tuple[RegistrationResult | None, GraphEdge | None]:
+        """Align the newest keyframe's scan to the local map of the recent keyframes' scans, placed at the window's
+        current poses, from the tracker's pose -> the result and the graph edge from the window's previous keyframe,
+        which the map holds at its pose (so the edge says where the map puts the new keyframe); then the scan joins
+        the map at the registered pose (at the tracker's when the alignment failed)."""
+        lmap = self._local_map
+        assert lmap is not None
+        T_cv = self.T_cam_velo
+        T_world_lidar = w.T_world_cam @ T_cv
+        lmap.place(w.kf_ids, T_world_lidar)
+        init = T_world_lidar[-1]
+        reg = edge = None
+        prev = len(w.kf_ids) - 2
+        if len(lmap) and prev >= 0 and int(w.kf_ids[prev]) in set(lmap.kf_ids):
+            al = lmap.align(np.asarray(scan.cloud.points), init)
+            T_prev_new = se3.inv(T_world_lidar[prev]) @ al.T_world_lidar
+            reg = RegistrationResult(
+                T_dst_src=T_prev_new, T_camdst_camsrc=T_cv @ T_prev_new @ se3.inv(T_cv), e_hat=al.e_hat,
+                e_bar=al.e_bar, zeta=al.zeta, method="local_map", converged=al.converged, fitness=al.fitness,
+                time_s=al.time_s)
+            if not al.converged:
+                log.info("registration of keyframe %d to the local map failed: %s", kf_id, al.why)
+            edge = GraphEdge(int(w.kf_ids[prev]), kf_id, reg.T_camdst_camsrc, al.zeta if al.converged else 0.0,
+                             EDGE_ODOMETRY)
+            log.debug("local map kf %d: e_hat %.3f e_bar %.3f zeta %.3f fitness %.2f (%.0f ms, %d map points)", kf_id,
+                      al.e_hat, al.e_bar, al.zeta, al.fitness, 1e3 * al.time_s, al.n_map)
+            if al.converged:
+                init = al.T_world_lidar
+        lmap.add(kf_id, np.asarray(scan.fine.points), init)
+        return reg, edge
 
     def _correction(self, w: WindowData, res: BAResult | None, edge: GraphEdge | None) -> MapCorrection | None:
         edges = (edge,) if edge is not None else ()

@@ -12,6 +12,7 @@ Construction lists files and reads headers only; images and scans are read by `_
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 from pathlib import Path
@@ -173,9 +174,14 @@ def _calibration(calib, camera: int, width: int, height: int, elevation_offset_d
 
 
 class _KittiSequence(SelectedFrames):
-    """Shared lazy reading of a selected range of KITTI frames (image + scan files per frame number)."""
+    """Shared lazy reading of a selected range of KITTI frames (image + scan files per frame number).
+
+    scans_compensated: KITTI's own scans are delivered motion-compensated (KISS-ICP and CT-ICP do not deskew them);
+    a generated sequence's are unless its scene.json says the lidar sweeps (the twins: each return in the sensor
+    frame at its own time)."""
 
     name: str
+    scans_compensated: bool = True
 
     def _init_frames(
         self,
@@ -214,6 +220,7 @@ class _KittiSequence(SelectedFrames):
             calib=self.calib,
             gt_T_world_cam=gt,
             color=color,
+            scan_compensated=self.scans_compensated,
         )
 
     def _load_image(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -285,12 +292,23 @@ class KittiOdometry(_KittiSequence):
         width, height = _image_size(images[selected[0]], selected[0])
         synthetic = (seq_dir / SYNTH_MARKER).is_file()
         offset = 0.0 if synthetic else KITTI_LIDAR_ELEVATION_OFFSET_DEG
+        self.scans_compensated = not (synthetic and _swept_lidar(seq_dir / SYNTH_MARKER))
         calib = _calibration(data.calib, camera, width, height, offset)
         pose_file = root / "poses" / f"{sequence}.txt"
         if not pose_file.is_file() and (seq_dir / "poses.txt").is_file():  # SemanticKITTI keeps it in the sequence
             pose_file = seq_dir / "poses.txt"
         gt = _odometry_gt(pose_file, selected, calib.T_cam0_cam)
         self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt, camera)
+
+
+def _swept_lidar(scene_file: Path) -> bool:
+    """Whether a generated sequence's scene.json says its lidar sweeps over the frame (the twins' `lidar.sweep_s`)."""
+    try:
+        scene = json.loads(scene_file.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{scene_file}: unreadable scene description: {exc}") from None
+    lidar = scene.get("lidar") if isinstance(scene, dict) else None
+    return isinstance(lidar, dict) and float(lidar.get("sweep_s", 0.0) or 0.0) > 0.0
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:

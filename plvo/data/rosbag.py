@@ -266,7 +266,10 @@ class RosbagDataset(SelectedFrames):
         gray, color = split_gray_color(raw)
         cloud_where = f"{self.path} {self.cloud_topic} at stamp {scan_ref.stamp_ns * 1e-9:.6f} s (frame {k})"
         scan, scan_time = cloud_scan(self._message(self.cloud_topic, scan_ref), cloud_where)
+        if scan_time is not None:  # after the cloud's stamp -> after the frame's time (the image's stamp)
+            scan_time = scan_time + 1e-9 * (scan_ref.stamp_ns - image_ref.stamp_ns)
+        # drivers that stamp each return deliver it in the sensor frame at that time (Velodyne, Ouster, Hesai)
         return Frame(index=k, time=1e-9 * image_ref.stamp_ns, image=gray, scan=scan, calib=self.calib,
-                     gt_T_world_cam=None, color=color, scan_time=scan_time)
+                     gt_T_world_cam=None, color=color, scan_time=scan_time, scan_compensated=scan_time is None)
 
 

@@ -35,6 +35,7 @@ from plvo.features.extract import extract_features
 from plvo.features.matching import match_lines, match_points
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject, in_image, project
+from plvo.lidar.deskew import Sweep, needs_deskew, twist_from_motion
 from plvo.results import TrackingResult
 from plvo.tracking import keyframes as kfp
 from plvo.tracking.association import FrameAssociation, search_by_projection
@@ -142,6 +143,7 @@ class Frontend:
         self._recent_kfs: deque[_FrameState] = deque(maxlen=max(1, config.tracking.search_keyframes))
         self._last_kf_pose_seen: np.ndarray | None = None
         self._velocity = np.eye(4)  # T_prev_cur of the last tracked step
+        self._prev_time: float | None = None  # the previous frame's time (s): the velocity's interval
         self._last_inliers = 0  # frame-to-frame PnPL inliers of the last tracked frame
         self._kf_tracked: _TrackedAtKeyframe | None = None  # the newest keyframe's matches to older landmarks
         self.uses_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
@@ -171,6 +173,7 @@ class Frontend:
             res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
         else:
             res = self._track(frame, feats, timings, self._prev)
+        self._prev_time = frame.time
         timings["total"] = time.perf_counter() - t0
         return dataclasses.replace(res, timings=timings)
 
@@ -445,8 +448,18 @@ class Frontend:
         log.info("frame %d: keyframe %d (%s): %d new point and %d new line landmarks", frame.index, kf_id, reason,
                  *n_new)
         info = KeyframeInfo(kf_id, frame.index, state.T_world_cam.copy(), frame, feats, priors,
-                            assoc.point_landmark.copy(), assoc.line_landmark.copy(), reason)
+                            assoc.point_landmark.copy(), assoc.line_landmark.copy(), reason, self._sweep(frame))
         return info, n_new
+
+    def _sweep(self, frame: Frame) -> Sweep | None:
+        """How the keyframe's scan is deskewed (plvo.lidar.deskew): the tracker's last motion, which is this frame's
+        (or after a loss the prediction's), over the time since the previous frame; None when not deskewed or no
+        motion is known yet (the first frame)."""
+        dt = None if self._prev_time is None else frame.time - self._prev_time
+        if not needs_deskew(frame, self.cfg.registration.deskew) or dt is None or not dt > 0:
+            return None
+        twist = twist_from_motion(self._velocity, dt, np.asarray(self.calib.T_cam_velo, float))
+        return Sweep(twist, frame.scan_time)
 
     def _landmarks_from_priors(self, kf_id: int, state: _FrameState, priors: DepthPriors, lines: bool
                                ) -> tuple[int, int]:

@@ -15,6 +15,7 @@ import numpy as np
 from plvo.config import TrackingConfig
 from plvo.geometry import se3
 from plvo.geometry.camera import pixel_rays, project
+from plvo.lidar.deskew import Sweep
 from plvo.lidar.scan import registration_scan
 from plvo.types import DepthPriors, FeatureSet, Frame
 
@@ -76,7 +77,8 @@ class KeyframeInfo:
 
     kf_id in the map; frame (image and scan); T_world_cam (4,4) at creation; features; depth_priors (None in
     the no-depth-priors ablation, except for lidar initialisations); point_landmark (N,) / line_landmark (M,):
-    the landmark id of each feature (-1 none), already recorded as observations in the map.
+    the landmark id of each feature (-1 none), already recorded as observations in the map; sweep: how the
+    workers deskew its registration scan (plvo.lidar.deskew), None when they do not.
     """
 
     kf_id: int
@@ -88,6 +90,7 @@ class KeyframeInfo:
     point_landmark: np.ndarray
     line_landmark: np.ndarray
     reason: str
+    sweep: Sweep | None = None
 
     @cached_property
     def registration_scan(self) -> np.ndarray:
