@@ -6,8 +6,8 @@ odometry alone, the full system, the system without the scale correction module 
 keyframe NDT (`backend.lidar_target = "keyframe"`) the full system, the full system with one registration
 corrupted (the NDT result moved 0.5 m and 1 deg, inside the jump gate, so it is accepted as converged), and the
 same corruption with the paper's printed zeta formula as a control (it gives the bad registration a large weight,
-and the trajectory follows it: the corruption is strong enough for the test to fail). Features and depth priors do not depend on the back end, so they are computed once and reused by the
-later runs.
+and the trajectory follows it: the corruption is strong enough for the test to fail). Features and depth priors
+do not depend on the back end, so they are computed once and reused by the later runs.
 """
 
 from __future__ import annotations
