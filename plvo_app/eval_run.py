@@ -1,16 +1,17 @@
-"""`plvo eval run`: run plvo (under each ablation) and KISS-ICP over sequences, then write Table I and plots.
+"""`plvo eval run`: run plvo (under each ablation), KISS-ICP and KISS-SLAM over sequences, then write Table I and
+plots.
 
 Examples:
   plvo eval run --root /data/kitti --seq 00 04 --ablations full,points_only --kiss --out results/eval
   plvo eval run --synth town/ --kiss --workers 2            # every sequence under town/sequences
-  plvo eval run --root ../shared/data/kitti --seq 04 --ablations none --kiss
+  plvo eval run --root ../shared/data/kitti --seq 04 --ablations none --kiss --kiss-slam
   plvo eval run --root /data/kitti --seq 00 01 02 --ray local --workers 2
   plvo eval run --root /data/kitti --seq 00 --ray ray://head:10001 --set tracking.keyframe_every=3
   plvo eval run --twins 00-10 --kitti-poses ../shared/data/kitti/poses --twin-root data/twins --frames 0:200
 
 --twins generates (or keeps, when current) the KITTI twins NN under --twin-root, driven along --kitti-poses/NN.txt
 (frames --frames of each, then run whole), and runs Table I on them: by default the ablations full,
-no_depth_priors, no_scale_correction, points_only and KISS-ICP beside them; rows are labelled twinNN.
+no_depth_priors, no_scale_correction, points_only and KISS-ICP and KISS-SLAM beside them; rows are labelled twinNN.
 
 Each (sequence, setting) is one task writing `OUT/runs/<setting>/<sequence>/` (poses.txt, gt.txt, result.json,
 config.toml) atomically; the tables go to OUT/report.md and OUT/report.json, the plots to OUT/plots/*.png.
@@ -69,6 +70,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
              f"with --twins: {TABLE_I_ABLATIONS})",
     )
     p.add_argument("--kiss", action="store_true", help="also run KISS-ICP (lidar only, voxel 1 m) on the same scans")
+    p.add_argument("--kiss-slam", action="store_true",
+                   help="also run KISS-SLAM (lidar-only SLAM with loop closure, its own defaults) on the same scans")
     p.add_argument("--inline", action="store_true", help="also run each ablation inline (backend.concurrent = "
                    "false), as column <ablation>_inline beside the deployed mode (the default, concurrent workers)")
     p.add_argument("--config", type=Path, help="plvo config TOML the ablations start from (default: built-in)")
@@ -197,6 +200,8 @@ def _progress(total: int):
         figure = ""
         if r.ok and r.metrics:
             figure = f"short t_err {r.metrics.get('short_t_err_pct') or float('nan'):.2f} %"
+        if r.ok and "loop_closures" in r.details:
+            figure += f" ({r.details['loop_closures']} loop closures)"
         state = "ok" if r.ok else "FAILED: " + (r.error.splitlines()[0] if r.error else "?")
         print(f"[{done[0]}/{total}] {r.spec.setting} / {r.spec.source.name}: {state} {figure}", file=sys.stderr)
 
@@ -214,16 +219,16 @@ def run_run(args: argparse.Namespace) -> int:
     if args.ablations is None:
         args.ablations = TABLE_I_ABLATIONS if twins else "full"
     if twins:
-        args.kiss = True  # Table I on the twins: KISS-ICP beside the ablations
+        args.kiss = args.kiss_slam = True  # Table I on the twins: KISS-ICP and KISS-SLAM beside the ablations
     sources = gather_sources(args)
     ablations = parse_ablations(args.ablations)
-    if not ablations and not args.kiss:
-        raise PlvoError("nothing to run: --ablations none and no --kiss")
+    if not ablations and not args.kiss and not args.kiss_slam:
+        raise PlvoError("nothing to run: --ablations none and neither --kiss nor --kiss-slam")
     if twins:
         sources += twin_sources(args)  # generates what is missing: after every cheap check
     config = str(args.config.resolve()) if args.config else None
     specs = build_specs(sources, ablations, args.kiss, parse_overrides(args.set), config, KissOptions(),
-                        inline=args.inline)
+                        inline=args.inline, kiss_slam=args.kiss_slam)
     specs = with_threads(specs, kiss_threads(args.workers, args.ray))
     results = execute(specs, args.out, workers=args.workers, ray=args.ray, resume=args.resume,
                       on_result=_progress(len(specs)))

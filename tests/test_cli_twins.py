@@ -52,8 +52,8 @@ def test_eval_run_twins_generates_once_and_tables(tmp_path, kitti_root, capsys):
     assert not list(twins.glob(".twin-*"))  # no staging folder left behind
     report = json.loads((out / "report.json").read_text())
     text = (out / "report.md").read_text()
-    assert "twin05" in text and "KISS-ICP" in text and "Point-only" in text
-    assert set(report["settings"]) == {"points_only", "kiss"}
+    assert "twin05" in text and "KISS-ICP" in text and "KISS-SLAM" in text and "Point-only" in text
+    assert set(report["settings"]) == {"points_only", "kiss", "kiss_slam"}
     stamp = (seq / "image_0" / "000000.png").stat().st_mtime_ns
     capsys.readouterr()
     assert main(argv + ["--resume"]) == 0

@@ -1,14 +1,17 @@
 """The paper's Table I from task results: errors per sequence and setting, averaged, as Markdown and JSON
 (plvo.eval.report_files writes them with plvo.eval.plots' figures).
 
-Rows are sequences, columns settings (the plvo ablations, then KISS-ICP). Figures are recomputed from each task
-folder's gt.txt and poses.txt with plvo.eval.kitti_metric, so they equal `plvo eval metric` on the same files.
+Rows are sequences, columns settings (the plvo ablations, then KISS-ICP and KISS-SLAM). Figures are recomputed from
+each task folder's gt.txt and poses.txt with plvo.eval.kitti_metric, so they equal `plvo eval metric` on the same
+files.
 The "all" row is the devkit's pooled figure (every segment of every sequence averaged together, as the KITTI
 server computes it); "mean" is the plain mean of the per-sequence figures. A setting whose run of some sequence
 failed (or has no ground truth) has its pooled figure over the others only: it is marked, never passed off as over
 all of them (report.json's "incomplete": setting -> those sequences; in report.md "0.62*" and a footnote), and its
 mean is left out. Sequences shorter than 100 m have no
 devkit segment: their cells read "-", and the short-segment table (10/20/40 m, every frame a start) covers them.
+A setting whose runs count their loop closures (KISS-SLAM) also gets them per sequence: report.json's
+"loop_closures" and a table in report.md.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from plvo.eval.kitti_metric import (
     SequenceEvaluation,
     evaluate,
 )
-from plvo.eval.tasks import KISS_SETTING, TaskResult, load_poses
+from plvo.eval.tasks import BASELINE_SETTINGS, KISS_SETTING, KISS_SLAM_SETTING, TaskResult, load_poses
 
 TABLES: tuple[tuple[str, str, Any, str], ...] = (  # (json key, title, getter of a RelativeError, format)
     ("t_err_pct", "Translation error [%] (KITTI devkit, 100-800 m)", lambda r: r.t_err_pct, "{:.2f}"),
@@ -43,6 +46,7 @@ LABELS = {
     "tracker_only": "Tracker only",
     "no_scale_step": "No scale step",
     KISS_SETTING: "KISS-ICP",
+    KISS_SLAM_SETTING: "KISS-SLAM",
 }
 
 
@@ -67,7 +71,9 @@ def _unique(values) -> tuple[str, ...]:
 def build_report(results: Sequence[TaskResult]) -> Report:
     """TaskResults (any order) -> Report with every figure recomputed from the task folders."""
     settings = _unique(r.spec.setting for r in results)
-    settings = tuple(s for s in settings if s != KISS_SETTING) + tuple(s for s in settings if s == KISS_SETTING)
+    # plvo's settings first, then the lidar-only baselines in a fixed order
+    settings = tuple(s for s in settings if s not in BASELINE_SETTINGS) + tuple(
+        b for b in BASELINE_SETTINGS if b in settings)
     sequences = _unique(r.spec.source.name for r in results)
     cells: dict[str, dict[str, Any]] = {s: {} for s in settings}
     poses: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {s: {} for s in settings}
@@ -153,6 +159,9 @@ def report_json(report: Report) -> dict[str, Any]:
         for s, ev in report.evaluations.items()
     }
     data["path_length_m"] = {q: _path_length(report, q) for q in report.sequences}
+    closures = loop_closures(report)
+    if closures:  # only with a setting that counts them: the other reports keep their keys
+        data["loop_closures"] = closures
     data["tasks"] = {
         s: {
             q: {"status": t.status, "error": t.error, "fps": t.fps, "seconds": t.seconds, "folder": str(t.folder)}
@@ -162,6 +171,49 @@ def report_json(report: Report) -> dict[str, Any]:
         for s in report.settings
     }
     return data
+
+
+def loop_closures(report: Report) -> dict[str, dict[str, dict[str, Any] | None]]:
+    """setting -> sequence -> {"accepted": loop closures the run accepted, "local_maps": its local maps,
+    "closures": [{reference_map, query_map, reference_frames, query_frames}, ...]}, None where the run failed; for the
+    settings whose runs count their loop closures (KISS-SLAM), none for the others."""
+    out: dict[str, dict[str, dict[str, Any] | None]] = {}
+    for setting in report.settings:
+        tasks = {r.spec.source.name: r for r in report.results if r.spec.setting == setting}
+        if not any(r.spec.method == "kiss_slam" or "loop_closures" in r.details for r in tasks.values()):
+            continue
+        col: dict[str, dict[str, Any] | None] = {}
+        for seq in report.sequences:
+            task = tasks.get(seq)
+            details = task.details if task is not None and task.ok else {}
+            col[seq] = None if "loop_closures" not in details else {
+                "accepted": int(details["loop_closures"]),
+                "local_maps": details.get("local_maps"),
+                "closures": list(details.get("closures", [])),
+            }
+        out[setting] = col
+    return out
+
+
+def _closures_markdown(report: Report, closures: dict[str, dict[str, dict[str, Any] | None]]) -> list[str]:
+    """The loop closures table (a row a sequence, a column a setting that counts them) and the closed pairs."""
+    settings = list(closures)
+    head = ["Seq."] + [LABELS.get(s, s) for s in settings]
+    lines = ["**Loop closures accepted** (KISS-SLAM: between its local maps of ~100 m of travel, each checked by ICP "
+             "overlap; in brackets the run's local maps; frames are rows of the run's poses.txt)", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    pairs = []
+    for seq in report.sequences:
+        cells = []
+        for s in settings:
+            cell = closures[s][seq]
+            cells.append("-" if cell is None else f"{cell['accepted']} ({cell['local_maps']})")
+            for c in [] if cell is None else cell["closures"]:
+                (r0, r1), (q0, q1) = c["reference_frames"], c["query_frames"]
+                pairs.append(f"- {LABELS.get(s, s)} / {seq}: local map {c['query_map']} (frames {q0}-{q1}) to "
+                             f"{c['reference_map']} (frames {r0}-{r1})")
+        lines.append(f"| {seq} | " + " | ".join(cells) + " |")
+    return lines + ([""] + pairs if pairs else []) + [""]
 
 
 def _path_length(report: Report, seq: str) -> float | None:
@@ -222,6 +274,8 @@ def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
                        rows=rows, first="length [m]", pooled_rows=tuple(rows), missing=missing)
     for attr, title in (("ate_m", "ATE RMSE [m] after SE(3) alignment"), ("final_drift_m", "Final drift [m]")):
         lines += _md_table(report, title, data[attr], "{:.3f}", rows=report.sequences)
+    if data.get("loop_closures"):
+        lines += _closures_markdown(report, data["loop_closures"])
     failed = [(s, q, t["error"]) for s, col in data["tasks"].items() for q, t in col.items() if t["status"] != "ok"]
     if failed:
         lines += ["**Failed runs**", ""] + [f"- {s} / {q}: {e.splitlines()[0] if e else '?'}" for s, q, e in failed]

@@ -1,13 +1,13 @@
 """Evaluation runs at scale: one task per (sequence, setting), fanned out over local processes or Ray.
 
-`build_specs` makes the RunSpecs (plvo under each ablation, KISS-ICP beside it); `execute(specs, out, workers=N)`
-runs them in this process for one worker, else over a local process pool whose workers write their own task
-folders; `execute(..., ray="local" | ADDRESS)` sends one Ray task per spec (a local Ray with `workers` CPUs, or
-`ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster needs no shared output folder; its
-nodes must see the datasets (and any config or calibration file) under the same paths, which is checked on every
-node before the first task, and be able to import plvo. A task whose node dies is run again by Ray elsewhere
-(plvo.fanout). Whatever the fan-out, the results are the same TaskResults, read back from the folders (see
-plvo.eval.tasks).
+`build_specs` makes the RunSpecs (plvo under each ablation, KISS-ICP and KISS-SLAM beside it);
+`execute(specs, out, workers=N)` runs them in this process for one worker, else over a local process pool whose
+workers write their own task folders; `execute(..., ray="local" | ADDRESS)` sends one Ray task per spec (a local Ray
+with `workers` CPUs, or `ray.init(address=ADDRESS)`) and writes the folders on the driver, so a cluster needs no
+shared output folder; its nodes must see the datasets (and any config or calibration file) under the same paths,
+which is checked on every node before the first task, and be able to import plvo. A task whose node dies is run
+again by Ray elsewhere (plvo.fanout). Whatever the fan-out, the results are the same TaskResults, read back from the
+folders (see plvo.eval.tasks).
 """
 
 from __future__ import annotations
@@ -22,8 +22,10 @@ from typing import Any
 from plvo.config import config_to_toml
 from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions
+from plvo.eval.kiss_slam import KissSlamOptions
 from plvo.eval.tasks import (  # noqa: F401  (re-exported: the runner is the public face)
     KISS_SETTING,
+    KISS_SLAM_SETTING,
     METHODS,
     RESULT_FILE,
     MethodOutput,
@@ -157,10 +159,12 @@ def build_specs(
     config_path: str | None = None,
     kiss_options: KissOptions | None = None,
     inline: bool = False,
+    kiss_slam: bool = False,
+    kiss_slam_options: KissSlamOptions | None = None,
 ) -> list[RunSpec]:
     """Every (sequence, setting) pair: plvo under each ablation (the deployed mode: the config's concurrent
     workers), with `inline` each also as `<ablation>_inline` (backend.concurrent = false, a fixed order of work with
-    no lag), then KISS-ICP when asked."""
+    no lag), then KISS-ICP and KISS-SLAM when asked."""
     specs = []
     for source in sources:
         for ablation in ablations:
@@ -173,16 +177,27 @@ def build_specs(
                 specs.append(RunSpec(source, "plvo", f"{ablation}{INLINE_SUFFIX}", ablation, sections, config_path))
         if kiss:
             specs.append(RunSpec(source, "kiss", KISS_SETTING, None, {}, None, kiss_options or KissOptions()))
+        if kiss_slam:
+            specs.append(RunSpec(source, "kiss_slam", KISS_SLAM_SETTING, None, {}, None,
+                                 kiss_slam=kiss_slam_options or KissSlamOptions()))
     return specs
 
 
 def kiss_threads(workers: int, ray: str | None) -> int:
-    """Threads for each KISS-ICP task: all cores alone (0), a fair share among local workers, 1 a Ray CPU."""
+    """Threads for each KISS-ICP or KISS-SLAM task: all cores alone (0), a fair share among local workers, 1 a Ray
+    CPU."""
     if ray is not None:
         return 1
     return 0 if workers <= 1 else max(1, (os.cpu_count() or 1) // workers)
 
 
 def with_threads(specs: Sequence[RunSpec], threads: int) -> list[RunSpec]:
-    """The specs with KISS-ICP's thread count set (see kiss_threads)."""
-    return [replace(s, kiss=replace(s.kiss, max_threads=threads)) if s.method == "kiss" else s for s in specs]
+    """The specs with KISS-ICP's and KISS-SLAM's thread counts set (see kiss_threads)."""
+    out = []
+    for s in specs:
+        if s.method == "kiss":
+            s = replace(s, kiss=replace(s.kiss, max_threads=threads))
+        elif s.method == "kiss_slam":
+            s = replace(s, kiss_slam=replace(s.kiss_slam, max_threads=threads))
+        out.append(s)
+    return out

@@ -1,10 +1,11 @@
 """One evaluation task: a RunSpec (sequence, method, setting) -> poses, metrics and a folder written atomically.
 
-A RunSpec names a sequence (dataset root + sequence name + frames), a method of METHODS ("plvo" or "kiss") and a
-setting (for plvo an ablation of config.ABLATIONS, plus optional config overrides; "kiss" for KISS-ICP). A task
-runs the method, anchors its poses at the first ground-truth pose, evaluates them with the devkit metric and
-writes `<out>/runs/<setting>/<label>/` atomically (built under a temporary name, then renamed): `poses.txt`
-(estimate, KITTI format), `gt.txt`, `result.json` (spec, status, metrics, timings), and for plvo `config.toml`.
+A RunSpec names a sequence (dataset root + sequence name + frames), a method of METHODS ("plvo", "kiss" or
+"kiss_slam") and a setting (for plvo an ablation of config.ABLATIONS, plus optional config overrides; "kiss" for
+KISS-ICP, "kiss_slam" for KISS-SLAM). A task runs the method, anchors its poses at the first ground-truth pose,
+evaluates them with the devkit metric and writes `<out>/runs/<setting>/<label>/` atomically (built under a temporary
+name, then renamed): `poses.txt` (estimate, KITTI format), `gt.txt`, `result.json` (spec, status, metrics, timings,
+and a method's own figures as "details": KISS-SLAM's loop closures), and for plvo `config.toml`.
 A failed task still writes its folder with status "failed" and the error, so that a sweep goes on.
 The fan-out over processes or Ray is in plvo.eval.runner.
 """
@@ -32,12 +33,15 @@ from plvo.data.registry import open_dataset, parse_frames
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
 from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions, run_kiss
+from plvo.eval.kiss_slam import KissSlamOptions, run_kiss_slam
 from plvo.eval.kitti_metric import SequenceEvaluation, evaluate_sequence, evaluation_json
 
 log = logging.getLogger(__name__)
 
 RESULT_FILE = "result.json"
 KISS_SETTING = "kiss"
+KISS_SLAM_SETTING = "kiss_slam"
+BASELINE_SETTINGS = (KISS_SETTING, KISS_SLAM_SETTING)  # the lidar-only methods beside plvo
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,7 @@ class SequenceSource:
 @dataclass(frozen=True)
 class RunSpec:
     """One task: a sequence, a method of METHODS, a setting name (table column; the ablation for plvo), nested
-    config overrides and an optional config file (plvo), KISS-ICP options (kiss)."""
+    config overrides and an optional config file (plvo), KISS-ICP options (kiss), KISS-SLAM options (kiss_slam)."""
 
     source: SequenceSource
     method: str = "plvo"
@@ -80,6 +84,7 @@ class RunSpec:
     overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     config_path: str | None = None
     kiss: KissOptions = field(default_factory=KissOptions)
+    kiss_slam: KissSlamOptions = field(default_factory=KissSlamOptions)
 
     def folder(self, out_dir: str | os.PathLike[str]) -> Path:
         return Path(out_dir) / "runs" / self.setting / self.source.name
@@ -92,15 +97,18 @@ class RunSpec:
         data = dict(data)
         data["source"] = SequenceSource(**data["source"])
         data["kiss"] = KissOptions(**data.get("kiss", {}))
+        data["kiss_slam"] = KissSlamOptions(**data.get("kiss_slam", {}))
         return RunSpec(**data)
 
 
 @dataclass(frozen=True)
 class MethodOutput:
-    """poses: (N,4,4) T_world_cam of cam0 (world = cam0 of the first frame); timings: stage -> seconds a run."""
+    """poses: (N,4,4) T_world_cam of cam0 (world = cam0 of the first frame); timings: stage -> seconds a run;
+    details: the method's own figures, JSON-able (KISS-SLAM: its loop closures)."""
 
     poses: np.ndarray
     timings: Mapping[str, Sequence[float]] = field(default_factory=dict)
+    details: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -117,11 +125,13 @@ class TaskOutput:
     metrics: Mapping[str, Any] | None = None
     timings: Mapping[str, Any] = field(default_factory=dict)
     config_toml: str | None = None
+    details: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class TaskResult:
-    """A task's summary as read back from its folder: the result.json fields and the folder."""
+    """A task's summary as read back from its folder: the result.json fields and the folder (details: {} for a
+    method without its own figures)."""
 
     spec: RunSpec
     status: str
@@ -132,6 +142,7 @@ class TaskResult:
     metrics: Mapping[str, Any] | None
     timings: Mapping[str, Any]
     folder: Path
+    details: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -168,8 +179,20 @@ def _method_kiss(dataset: Dataset, spec: RunSpec) -> MethodOutput:
     return MethodOutput(out.poses, {"registration": out.seconds.tolist()})
 
 
+def _method_kiss_slam(dataset: Dataset, spec: RunSpec) -> MethodOutput:
+    out = run_kiss_slam(dataset, spec.kiss_slam)
+    details = {
+        "loop_closures": out.n_closures,
+        "closures": [asdict(c) for c in out.closures],
+        "local_maps": out.n_local_maps,
+    }
+    return MethodOutput(out.poses, {"registration": out.seconds.tolist(), "finalize": [out.finalize_s]}, details)
+
+
 # method name -> (dataset, spec) -> MethodOutput
-METHODS: dict[str, Callable[[Dataset, RunSpec], MethodOutput]] = {"plvo": _method_plvo, "kiss": _method_kiss}
+METHODS: dict[str, Callable[[Dataset, RunSpec], MethodOutput]] = {
+    "plvo": _method_plvo, "kiss": _method_kiss, "kiss_slam": _method_kiss_slam,
+}
 
 
 # ---------------------------------------------------------------- one task
@@ -227,6 +250,7 @@ def execute_task(spec: RunSpec) -> TaskOutput:
         return TaskOutput(
             spec, "ok", est=est, gt=gt, n_frames=len(dataset), seconds=time.perf_counter() - t0,
             metrics=metrics, timings=summarize_timings(out.timings), config_toml=config_toml,
+            details=dict(out.details),
         )
     except Exception as exc:  # one bad run must not end a sweep: record it
         kind = "" if isinstance(exc, PlvoError) else f"{type(exc).__name__}: "
@@ -258,6 +282,8 @@ def write_task(output: TaskOutput, out_dir: str | os.PathLike[str]) -> TaskResul
             "metrics": output.metrics,
             "timings": dict(output.timings),
         }
+        if output.details:  # only a method with figures of its own: the other results keep their fields
+            result["details"] = dict(output.details)
         write_text_atomic(tmp / RESULT_FILE, json.dumps(result, indent=1, allow_nan=False) + "\n")
         _swap_in(tmp, final)
     except BaseException:
@@ -289,6 +315,7 @@ def read_result(folder: str | os.PathLike[str]) -> TaskResult:
         spec=RunSpec.from_json(data["spec"]), status=data["status"], error=data.get("error", ""),
         n_frames=int(data.get("n_frames", 0)), seconds=float(data.get("seconds", 0.0)),
         fps=float(data.get("fps", 0.0)), metrics=data.get("metrics"), timings=data.get("timings", {}), folder=folder,
+        details=data.get("details", {}),
     )
 
 
