@@ -11,6 +11,7 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.recording import Recorder
+from plvo.results import EDGE_LOOP
 from plvo.system import System
 
 
@@ -26,6 +27,10 @@ class RunOutput:
     finished_at: float = 0.0  # time.perf_counter() once the workers' last results were applied (before closing)
     # the back end's per-keyframe stage record (plvo.worker_stages.RunRecord.stage_steps; plvo.eval.stage_drift)
     stage_steps: tuple[dict, ...] = ()
+    # the frame of each keyframe (by id) and the accepted loops as the map keeps them: (match keyframe, query
+    # keyframe, T_match_query (4,4) of the tracked camera) (plvo.eval.revisits judges them against ground truth)
+    keyframe_frames: tuple[int, ...] = ()
+    loop_edges: tuple[tuple[int, int, np.ndarray], ...] = ()
 
 
 def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
@@ -50,6 +55,8 @@ def run_system(system: System, dataset, progress: Callable[[int], object] | None
         poses = system.poses_cam0(dataset.frame_indices)
     finally:
         system.close()
-    return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings),
-                     system.map.n_keyframes if system.map is not None else 0, system.n_lost, finished_at,
-                     tuple(system.record.stage_steps))
+    m = system.map
+    kf_frames = () if m is None else tuple(m.keyframe_frame(k) for k in range(m.n_keyframes))
+    loops = () if m is None else tuple((e.i, e.j, e.T_i_j) for e in m.edges if e.kind == EDGE_LOOP)
+    return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings), m.n_keyframes if m is not None else 0,
+                     system.n_lost, finished_at, tuple(system.record.stage_steps), kf_frames, loops)

@@ -11,14 +11,18 @@ all of them (report.json's "incomplete": setting -> those sequences; in report.m
 mean is left out. Sequences shorter than 100 m have no
 devkit segment: their cells read "-", and the short-segment table (10/20/40 m, every frame a start) covers them.
 A setting whose runs count their loop closures (KISS-SLAM) also gets them per sequence: report.json's
-"loop_closures" and a table in report.md.
+"loop_closures" and a table in report.md; plvo's runs say how true each loop they accepted is (its edge against the
+ground truth, plvo.eval.revisits) and what each stage of the pipeline left of the heading and the scale
+(plvo.eval.stage_drift): report.json's "plvo_loops" and "stage_drift", each a table in report.md.
+When the rows hold KITTI twins of both the development set and the held-out one (plvo.eval.splits), the rows are
+grouped by set and each set is pooled apart as well ("all (development)", "all (held-out)").
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -30,6 +34,8 @@ from plvo.eval.kitti_metric import (
     SequenceEvaluation,
     evaluate,
 )
+from plvo.eval.splits import DEVELOPMENT, HELD_OUT, twin_split
+from plvo.eval.stage_drift import STAGES
 from plvo.eval.tasks import BASELINE_SETTINGS, KISS_SETTING, KISS_SLAM_SETTING, TaskResult, load_poses
 
 TABLES: tuple[tuple[str, str, Any, str], ...] = (  # (json key, title, getter of a RelativeError, format)
@@ -45,6 +51,9 @@ LABELS = {
     "points_only": "Point-only",
     "tracker_only": "Tracker only",
     "no_scale_step": "No scale step",
+    "no_deskew": "No deskew",
+    "keyframe_ndt": "Keyframe NDT",
+    "no_lidar_loops": "No lidar loops",
     KISS_SETTING: "KISS-ICP",
     KISS_SLAM_SETTING: "KISS-SLAM",
 }
@@ -62,6 +71,9 @@ class Report:
     cells: dict[str, dict[str, SequenceEvaluation | str]]
     results: tuple[TaskResult, ...]
     poses: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
+    # split (plvo.eval.splits) -> setting -> pooled Evaluation over that split's sequences (None if none finished);
+    # empty unless the rows hold twins of both splits
+    split_evaluations: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def _unique(values) -> tuple[str, ...]:
@@ -75,6 +87,11 @@ def build_report(results: Sequence[TaskResult]) -> Report:
     settings = tuple(s for s in settings if s not in BASELINE_SETTINGS) + tuple(
         b for b in BASELINE_SETTINGS if b in settings)
     sequences = _unique(r.spec.source.name for r in results)
+    groups = {sp: [q for q in sequences if twin_split(q) == sp] for sp in (DEVELOPMENT, HELD_OUT)}
+    if all(groups.values()):  # development rows first, then the held-out ones, then the rest
+        sequences = (*groups[DEVELOPMENT], *groups[HELD_OUT], *(q for q in sequences if twin_split(q) is None))
+    else:
+        groups = {}
     cells: dict[str, dict[str, Any]] = {s: {} for s in settings}
     poses: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {s: {} for s in settings}
     for r in results:
@@ -92,7 +109,13 @@ def build_report(results: Sequence[TaskResult]) -> Report:
         evaluation = evaluations[setting] = evaluate(pairs) if pairs else None
         if evaluation is not None:
             cells[setting].update({ev.name: ev for ev in evaluation.sequences})
-    return Report(settings, sequences, evaluations, cells, tuple(results), poses)
+    splits: dict[str, dict[str, Any]] = {}
+    for split, seqs in groups.items():
+        splits[split] = {}
+        for setting in settings:
+            pairs = {seq: poses[setting][seq] for seq in seqs if seq in poses[setting]}
+            splits[split][setting] = evaluate(pairs) if pairs else None
+    return Report(settings, sequences, evaluations, cells, tuple(results), poses, splits)
 
 
 def _num(value: float) -> float | None:
@@ -121,6 +144,10 @@ def table_values(report: Report, key: str, getter) -> dict[str, dict[str, float 
         ev = report.evaluations[setting]
         pooled = None if ev is None else (ev.short if key.startswith("short") else ev.kitti)
         col["all"] = None if pooled is None else _num(getter(pooled))
+        for split, evs in report.split_evaluations.items():
+            ev_split = evs[setting]
+            pooled = None if ev_split is None else (ev_split.short if key.startswith("short") else ev_split.kitti)
+            col[f"all ({split})"] = None if pooled is None else _num(getter(pooled))
         vals = [v for v in (col[s] for s in report.sequences) if v is not None]
         complete = len(vals) == len(report.sequences)
         col["mean"] = float(np.mean(vals)) if vals and complete else None
@@ -162,6 +189,14 @@ def report_json(report: Report) -> dict[str, Any]:
     closures = loop_closures(report)
     if closures:  # only with a setting that counts them: the other reports keep their keys
         data["loop_closures"] = closures
+    if report.split_evaluations:
+        data["splits"] = {split: [q for q in report.sequences if twin_split(q) == split]
+                          for split in report.split_evaluations}
+    plvo_loops, drift = _plvo_details(report)
+    if plvo_loops:
+        data["plvo_loops"] = plvo_loops
+    if drift:
+        data["stage_drift"] = drift
     data["tasks"] = {
         s: {
             q: {"status": t.status, "error": t.error, "fps": t.fps, "seconds": t.seconds, "folder": str(t.folder)}
@@ -193,6 +228,71 @@ def loop_closures(report: Report) -> dict[str, dict[str, dict[str, Any] | None]]
             }
         out[setting] = col
     return out
+
+
+def _plvo_details(report: Report) -> tuple[dict[str, Any], dict[str, Any]]:
+    """From plvo's runs' details: setting -> sequence -> {accepted, true, worst edge errors, loops} and setting ->
+    sequence -> stage -> drift summary (plvo.eval.stage_drift); sequences without ground truth left out."""
+    loops: dict[str, Any] = {}
+    drift: dict[str, Any] = {}
+    for r in report.results:
+        d = r.details if r.ok else {}
+        name, setting = r.spec.source.name, r.spec.setting
+        if "loops" in d:
+            edges = d["loops"]
+            loops.setdefault(setting, {})[name] = {
+                "accepted": len(edges), "true": sum(1 for e in edges if e["true"]),
+                "max_edge_error_m": max((e["edge_error_m"] for e in edges), default=None),
+                "max_edge_error_deg": max((e["edge_error_deg"] for e in edges), default=None),
+                "loops": edges}
+        if "stage_drift" in d:
+            drift.setdefault(setting, {})[name] = d["stage_drift"]
+    return loops, drift
+
+
+def _plvo_loops_markdown(report: Report, loops: dict[str, Any]) -> list[str]:
+    settings = [s for s in report.settings if s in loops]
+    head = ["Seq."] + [LABELS.get(s, s) for s in settings]
+    lines = ["**plvo's accepted loops: true / accepted** (true: the loop edge within 1 m and 2 deg of the ground "
+             "truth's relative pose; in brackets the largest edge error, m / deg)", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for seq in report.sequences:
+        cells = []
+        for s in settings:
+            c = loops[s].get(seq)
+            if c is None:
+                cells.append("-")
+            elif c["accepted"]:
+                cells.append(f"{c['true']} / {c['accepted']} ({c['max_edge_error_m']:.2f} / "
+                             f"{c['max_edge_error_deg']:.2f})")
+            else:
+                cells.append("0 / 0")
+        lines.append(f"| {seq} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+def _drift_markdown(report: Report, drift: dict[str, Any]) -> list[str]:
+    """One table a plvo setting: rows the sequences, columns the stages, cells the heading lost over 100 m
+    (deg) / the distance error over 100 m (%)."""
+    lines: list[str] = []
+    for setting in (s for s in report.settings if s in drift):
+        lines += [f"**Where the heading and the scale go: {LABELS.get(setting, setting)}** (each keyframe step as "
+                  "the stage left it against the ground truth; per 100 m of path: heading lost in deg / distance "
+                  "error in %, means over 100 m stretches; plvo.eval.stage_drift)", "",
+                  "| Seq. | " + " | ".join(STAGES) + " |", "|" + "---|" * (len(STAGES) + 1)]
+        for seq in report.sequences:
+            by_stage = drift[setting].get(seq)
+            if by_stage is None:
+                continue
+            cells = []
+            for stage in STAGES:
+                v = by_stage.get(stage, {})
+                yaw, scale = v.get("yaw_deg_per_100m"), v.get("scale_pct")
+                ok = v.get("steps") and yaw is not None and scale is not None and math.isfinite(yaw)
+                cells.append(f"{yaw:.3f} / {scale:.2f}" if ok else "-")
+            lines.append(f"| {seq} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
 
 
 def _closures_markdown(report: Report, closures: dict[str, dict[str, dict[str, Any] | None]]) -> list[str]:
@@ -234,7 +334,8 @@ def _md_table(
     head = [first] + [LABELS.get(s, s) for s in report.settings]
     lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     marked = set()
-    for row in rows if rows is not None else (*report.sequences, "all", "mean"):
+    split_rows = tuple(f"all ({split})" for split in report.split_evaluations)
+    for row in rows if rows is not None else (*report.sequences, "all", *split_rows, "mean"):
         cells = []
         for s in report.settings:
             value = values[s].get(row)
@@ -276,6 +377,13 @@ def report_markdown(report: Report, data: dict[str, Any] | None = None) -> str:
         lines += _md_table(report, title, data[attr], "{:.3f}", rows=report.sequences)
     if data.get("loop_closures"):
         lines += _closures_markdown(report, data["loop_closures"])
+    if data.get("plvo_loops"):
+        lines += _plvo_loops_markdown(report, data["plvo_loops"])
+    if data.get("stage_drift"):
+        lines += _drift_markdown(report, data["stage_drift"])
+    if data.get("splits"):
+        lines += ["Development set (the defaults were tuned on it): " + ", ".join(data["splits"][DEVELOPMENT])
+                  + "; held out: " + ", ".join(data["splits"][HELD_OUT]) + " (plvo.eval.splits).", ""]
     failed = [(s, q, t["error"]) for s, col in data["tasks"].items() for q, t in col.items() if t["status"] != "ok"]
     if failed:
         lines += ["**Failed runs**", ""] + [f"- {s} / {q}: {e.splitlines()[0] if e else '?'}" for s, q, e in failed]

@@ -4,6 +4,12 @@ A revisit: a keyframe within REVISIT_M metres and REVISIT_DEG degrees (ground tr
 keyframes back. Precision: accepted loops joining a true revisit / accepted loops. Recall: revisit passages (runs of
 consecutive revisiting keyframes) with at least one accepted true loop / passages; and revisiting keyframes within
 the closer's cooldown after an accepted true loop / revisiting keyframes.
+
+`loop_edge_errors` judges each accepted loop by what it asserts rather than by where its keyframes are: the
+relative pose the loop edge gives against the ground truth's. A loop seen from the other direction (a street driven
+back) joins keyframes facing apart, which the revisit test above, built for the bags of words' same-direction
+views, does not count; its edge is right or wrong all the same. A loop is true when its edge is within
+TRUE_LOOP_M and TRUE_LOOP_DEG of the truth: a revisit misjudged by more than that would pull the map apart.
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 REVISIT_M, REVISIT_DEG = 5.0, 30.0
+TRUE_LOOP_M, TRUE_LOOP_DEG = 1.0, 2.0
 
 
 def revisits(gt: np.ndarray, kf_frame: dict[int, int], gap: int, max_m: float = REVISIT_M,
@@ -54,3 +61,24 @@ def detection_stats(gt: np.ndarray, kf_frame: dict[int, int], accepted: list[tup
     return {"n_accepted": len(accepted), "n_true": len(true), "n_revisit_keyframes": len(qs),
             "n_passages": len(passages), "n_passages_found": sum(1 for p in passages if found & set(p)),
             "n_revisit_keyframes_covered": len(covered)}
+
+
+def loop_edge_errors(gt: np.ndarray, kf_frame: dict[int, int], edges) -> list[dict[str, float | int | bool]]:
+    """Ground-truth poses (N,4,4) of the tracked camera by row, keyframe id -> row, loop edges (match id, query id,
+    T_match_query (4,4)) -> per edge: the keyframes, their true distance apart and heading difference, the edge's
+    error against the truth (m, deg) and whether it is true (see the module doc)."""
+    out: list[dict[str, float | int | bool]] = []
+    for m, q, T in edges:
+        if int(m) not in kf_frame or int(q) not in kf_frame:
+            continue
+        Gm, Gq = np.asarray(gt[kf_frame[int(m)]], float), np.asarray(gt[kf_frame[int(q)]], float)
+        truth = np.linalg.inv(Gm) @ Gq
+        E = np.linalg.inv(truth) @ np.asarray(T, float)
+        t_err = float(np.linalg.norm(E[:3, 3]))
+        r_err = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+        apart = float(np.degrees(np.arccos(np.clip((np.trace(truth[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+        out.append({"match_keyframe": int(m), "query_keyframe": int(q), "true_distance_m": round(
+            float(np.linalg.norm(truth[:3, 3])), 3), "heading_apart_deg": round(apart, 2),
+            "edge_error_m": round(t_err, 4), "edge_error_deg": round(r_err, 4),
+            "true": bool(t_err <= TRUE_LOOP_M and r_err <= TRUE_LOOP_DEG)})
+    return out

@@ -35,6 +35,8 @@ from plvo.errors import PlvoError
 from plvo.eval.kiss import KissOptions, run_kiss
 from plvo.eval.kiss_slam import KissSlamOptions, run_kiss_slam
 from plvo.eval.kitti_metric import SequenceEvaluation, evaluate_sequence, evaluation_json
+from plvo.eval.revisits import loop_edge_errors
+from plvo.eval.stage_drift import stage_drift
 
 log = logging.getLogger(__name__)
 
@@ -163,11 +165,33 @@ def plvo_config(spec: RunSpec):
 
 
 def run_pipeline(dataset: Dataset, config) -> MethodOutput:
-    """Dataset + SystemConfig -> plvo's cam0 poses (N,4,4) T_world_cam0 and per-stage timings."""
+    """Dataset + SystemConfig -> plvo's cam0 poses (N,4,4) T_world_cam0 and per-stage timings; with ground truth
+    its details say what each stage left of the heading and scale (plvo.eval.stage_drift) and how true each accepted
+    loop is (plvo.eval.revisits.loop_edge_errors)."""
     from plvo.run import run_dataset
 
     out = run_dataset(dataset, config)
-    return MethodOutput(np.asarray(out.poses, dtype=np.float64), dict(out.timings))
+    poses = np.asarray(out.poses, dtype=np.float64)
+    return MethodOutput(poses, dict(out.timings), run_details(dataset, out, poses))
+
+
+def run_details(dataset: Dataset, out: Any, poses: np.ndarray) -> dict[str, Any]:
+    """A plvo run's figures beside its poses: the loops it accepted, keyframes, tracking losses, and with ground
+    truth the stage drift and each loop's error."""
+    details: dict[str, Any] = {"keyframes": int(out.n_keyframes), "tracking_losses": int(out.n_lost),
+                               "loops_accepted": len(out.loop_edges)}
+    gt = dataset.gt_T_world_cam
+    if gt is None:
+        return details
+    T_cam0_cam = np.asarray(dataset.calib.T_cam0_cam, float)
+    gt_cam0 = gt @ np.linalg.inv(T_cam0_cam)
+    details["stage_drift"] = stage_drift(out.stage_steps, out.frame_indices, gt_cam0, poses, T_cam0_cam)
+    row = {int(f): k for k, f in enumerate(out.frame_indices)}
+    kf_row = {k: row[f] for k, f in enumerate(out.keyframe_frames) if f in row}
+    loops = loop_edge_errors(gt, kf_row, out.loop_edges)
+    details["loops"] = loops
+    details["loops_true"] = sum(1 for e in loops if e["true"])
+    return details
 
 
 def _method_plvo(dataset: Dataset, spec: RunSpec) -> MethodOutput:
