@@ -37,7 +37,10 @@ from plvo.lidar.registration import zeta_from_errors
 
 _REG = o3d.pipelines.registration
 _NORMAL_NEIGHBOURS = 10  # as plvo.lidar.registration's targets
-# A converged ICP barely moves when given one more iteration (plvo.lidar.registration uses these for NDT).
+# Source points an alignment uses at most: a KITTI-sized scan at the 0.6 m registration voxel has 5-9k; 4000 spread
+# over it fix the pose as well at half the cost of the larger ones.
+_MAX_SOURCE_POINTS = 4000
+# A converged ICP barely moves when given one more Gauss-Newton step (plvo.lidar.registration's bounds for NDT).
 _SETTLED_M, _SETTLED_DEG = 0.02, 0.1
 
 
@@ -64,6 +67,7 @@ class MapAlignment:
 class _Entry:
     kf_id: int
     points: np.ndarray  # (N,3) in the keyframe's own lidar frame
+    normals: np.ndarray  # (N,3) their unit normals, estimated once in that frame
     T_world_lidar: np.ndarray  # where the map last placed it
 
 
@@ -97,9 +101,11 @@ class LocalMap:
             raise PlvoError(f"local map: keyframe {kf_id}'s points must have shape (N,3), got {pts.shape}")
         if self._entries and kf_id <= self._entries[-1].kf_id:
             raise PlvoError(f"local map: keyframe {kf_id} added after keyframe {self._entries[-1].kf_id}")
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[:, :3]))
-        down = np.asarray(pc.voxel_down_sample(self.voxel_m).points)
-        self._entries.append(_Entry(int(kf_id), down, np.array(T_world_lidar, float)))
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[:, :3])).voxel_down_sample(self.voxel_m)
+        # a scan's normals move with it: estimated here once, not on the whole map at every placement
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=_NORMAL_NEIGHBOURS))
+        self._entries.append(_Entry(int(kf_id), np.asarray(pc.points), np.asarray(pc.normals),
+                                    np.array(T_world_lidar, float)))
         del self._entries[:-self.max_keyframes]
         self._built = None
 
@@ -125,8 +131,13 @@ class LocalMap:
             if not self._entries:
                 raise PlvoError("local map: no keyframe scans to build a map from")
             pts = np.concatenate([se3.transform_points(e.T_world_lidar, e.points) for e in self._entries])
-            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(self.voxel_m)
-            pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=_NORMAL_NEIGHBOURS))
+            nrm = np.concatenate([e.normals @ e.T_world_lidar[:3, :3].T for e in self._entries])
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            pc.normals = o3d.utility.Vector3dVector(nrm)
+            # where scans overlap, a voxel's normal is the mean of theirs (their signs are each scan's own: a
+            # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign)
+            pc = pc.voxel_down_sample(self.voxel_m)
+            pc.normalize_normals()
             self._built = (pc, cKDTree(np.asarray(pc.points)))
         return self._built
 
@@ -138,28 +149,37 @@ class LocalMap:
         if init.shape != (4, 4) or not np.all(np.isfinite(init)):
             raise PlvoError(f"local map: T_world_lidar_init must be a finite (4,4) matrix, got shape {init.shape}")
         src = np.asarray(source, float)[:, :3]
+        if len(src) > _MAX_SOURCE_POINTS:  # evenly thinned: an ICP iteration costs by the source point
+            src = src[np.linspace(0, len(src) - 1, _MAX_SOURCE_POINTS).astype(int)]
         target, tree = self._build()
         cfg = self.cfg
         T, why = init, ""
         at_bar = None
+        normals, q = np.asarray(target.normals), np.asarray(target.points)
+        info = np.zeros((6, 6))
         try:
             T = _icp(src, target, init, cfg)
-            at_bar = _matches(src, T, tree, cfg.max_correspondence_m)
-            fitness = float(np.mean(at_bar[1])) if len(src) else 0.0
-            why = f"fitness {fitness:.2f} < {cfg.min_fitness}" if fitness < cfg.min_fitness else \
-                _judge(src, target, init, T, cfg)
-        except (RuntimeError, ValueError) as exc:  # open3d raises RuntimeError on degenerate input
+            why = _judge(init, T, cfg)
+            if not why:
+                at_bar = _matches(src, T, tree, cfg.max_correspondence_m)
+                fitness = float(np.mean(at_bar[1])) if len(src) else 0.0
+                info, step = _gauss_newton(src, T, at_bar, q, normals, cfg.max_correspondence_m / 2)
+                # one more Gauss-Newton step from the result, on the same correspondences: a converged ICP barely
+                # moves (what plvo.lidar.registration checks with one more NDT iteration)
+                moved_m, moved_deg = float(np.linalg.norm(step[:3])), float(np.degrees(np.linalg.norm(step[3:])))
+                if fitness < cfg.min_fitness:
+                    why = f"fitness {fitness:.2f} < {cfg.min_fitness}"
+                elif moved_m > _SETTLED_M or moved_deg > _SETTLED_DEG:
+                    why = f"icp not converged (a further step moves {moved_m:.3f} m, {moved_deg:.2f} deg)"
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # open3d: RuntimeError on degenerate input
             why = f"icp raised: {exc}"
         n_map = len(target.points)
         if why or at_bar is None:
             return MapAlignment(init, np.zeros((6, 6)), float("nan"), float("nan"), 0.0, False, 0.0, n_map,
                                 time.perf_counter() - t0, why)
-        normals = np.asarray(target.normals)
-        q = np.asarray(target.points)
         at_hat = _matches(src, init, tree, cfg.max_correspondence_m)
         e_bar = _plane_error(at_bar, q, normals, cfg.max_correspondence_m, at_bar[1])
         e_hat = _plane_error(at_hat, q, normals, cfg.max_correspondence_m, at_bar[1])
-        info = _information(src, T, at_bar, q, normals, cfg.max_correspondence_m / 2)
         return MapAlignment(T, info, e_hat, e_bar, zeta_from_errors(e_hat, e_bar, cfg.zeta_formula), True, fitness,
                             n_map, time.perf_counter() - t0)
 
@@ -168,28 +188,25 @@ def _cloud(points: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
 
 
-def _icp(src: np.ndarray, target: o3d.geometry.PointCloud, init: np.ndarray, cfg: RegistrationConfig,
-         iterations: int | None = None) -> np.ndarray:
+def _icp(src: np.ndarray, target: o3d.geometry.PointCloud, init: np.ndarray, cfg: RegistrationConfig) -> np.ndarray:
     """Point-to-plane ICP with a Tukey kernel (as plvo.lidar.registration's fallback) -> T_world_lidar, rounded far
     below its accuracy: open3d's parallel sums differ between identical calls in the last bits, and the back end's
     discrete decisions would amplify that into different runs."""
     est = _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=cfg.max_correspondence_m / 2))
-    crit = _REG.ICPConvergenceCriteria(max_iteration=iterations or cfg.max_iterations)
+    # stop when an iteration changes the rms by less than 1e-5 of it (open3d's default 1e-6 runs ~2x the iterations
+    # for sub-millimetre changes)
+    crit = _REG.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-5, max_iteration=cfg.max_iterations)
     res = _REG.registration_icp(_cloud(src), target, cfg.max_correspondence_m, init, est, crit)
     return np.round(np.asarray(res.transformation), 9)
 
 
-def _judge(src: np.ndarray, target: o3d.geometry.PointCloud, init: np.ndarray, T: np.ndarray,
-           cfg: RegistrationConfig) -> str:
-    """Why the ICP result T is not accepted ("" when it is)."""
+def _judge(init: np.ndarray, T: np.ndarray, cfg: RegistrationConfig) -> str:
+    """Why the ICP result T cannot be accepted whatever its fit ("" when it can)."""
     if not np.all(np.isfinite(T)):
         return "icp gave a non-finite transform"
     jump = se3.inv(init) @ T
     if np.linalg.norm(jump[:3, 3]) > cfg.max_jump_m or np.degrees(se3.rotation_angle(jump)) > cfg.max_jump_deg:
         return f"icp jumped {np.linalg.norm(jump[:3, 3]):.2f} m from the initial guess"
-    moved = se3.inv(T) @ _icp(src, target, T, cfg, iterations=1)
-    if np.linalg.norm(moved[:3, 3]) > _SETTLED_M or np.degrees(se3.rotation_angle(moved)) > _SETTLED_DEG:
-        return f"icp not converged (a further iteration moves {np.linalg.norm(moved[:3, 3]):.3f} m)"
     return ""
 
 
@@ -214,17 +231,21 @@ def _plane_error(m, q: np.ndarray, normals: np.ndarray, radius: float, subset: n
     return float(np.mean(r[subset]))
 
 
-def _information(src: np.ndarray, T: np.ndarray, m, q: np.ndarray, normals: np.ndarray, k: float) -> np.ndarray:
-    """J^T W J / sigma^2 of the point-to-plane residuals r = n . (T exp(xi) s - q) (Tukey weights W, threshold k,
-    sigma^2 their weighted mean square) at xi = 0, for source points s (lidar frame): with the normal in the lidar
-    frame m = R^T n, J = [m, s x m] in (rho, phi)."""
+def _gauss_newton(src: np.ndarray, T: np.ndarray, m, q: np.ndarray, normals: np.ndarray, k: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The robust point-to-plane problem at T for source points s (lidar frame), residuals r = n . (T exp(xi) s - q)
+    with Tukey weights W (threshold k), sigma^2 their weighted mean square -> (information J^T W J / sigma^2 (6,6),
+    the Gauss-Newton step xi (6,) from T). With the normal in the lidar frame m = R^T n, J = [m, s x m] in
+    (rho, phi). A problem without six directions' worth of residuals gives zeros and a step of infinity."""
     p, near, idx = m
     n = normals[idx[near]]
     r = np.einsum("ni,ni->n", n, p[near] - q[idx[near]])
     w = np.where(np.abs(r) < k, (1.0 - (r / k) ** 2) ** 2, 0.0)
     if w.sum() <= 6:
-        return np.zeros((6, 6))
+        return np.zeros((6, 6)), np.full(6, np.inf)
     n_lidar = n @ T[:3, :3]
     J = np.concatenate([n_lidar, np.cross(src[near], n_lidar)], axis=1)
+    H = (J * w[:, None]).T @ J
+    step = -np.linalg.lstsq(H, J.T @ (w * r), rcond=None)[0]
     sigma2 = max(float(np.sum(w * r * r) / w.sum()), 1e-8)
-    return (J * w[:, None]).T @ J / sigma2
+    return H / sigma2, step
