@@ -16,12 +16,12 @@ frames' odometry; so a closed loop shows in every frame's pose. Within one local
 are KISS-ICP's with the same settings; past that they differ a little even without a closure, as each new local map
 takes over the odometry's map re-gridded in its own frame.
 
-Deskew: KISS-SLAM's default odometry config deskews (`preprocessing.deskew = True`), and so does KISS-ICP's own
-default (`data.deskew = True`; plvo.eval.kiss turns it off). kiss_icp deskews only with per-point timestamps (any unit:
-it normalises them to the scan's own min..max and moves each point to the sweep's end with the last frame-to-frame
-motion); given an empty array, as kiss_icp's own KITTI loader gives, it leaves the scan as it is. The scans here are
-points only, as for KISS-ICP, so neither method deskews (KITTI odometry scans are motion compensated already; the
-KITTI twins' are not: `plvo.data.synth.twin.lidars.point_times` has their returns' times).
+Deskew: KISS-SLAM's default odometry config deskews (`preprocessing.deskew = True`), as KISS-ICP's does. kiss_icp
+deskews only with per-point timestamps (any unit: it normalises them to the scan's own min..max and moves each point
+to the sweep's end with the last frame-to-frame motion); given an empty array, as kiss_icp's own KITTI loader
+gives, it leaves the scan as it is. It gets the same timestamps as KISS-ICP (plvo.eval.kiss: where the source says
+its scans are not motion-compensated, the data's or the azimuth's), unless `KissSlamOptions(deskew=False)`, and its
+poses of deskewed scans are taken from the sweep's end to the frame's time as KISS-ICP's are.
 
 KISS-SLAM prints its progress ("KissSLAM| Closure Detected", ...) to stdout and its pose-graph optimiser (g2o, in
 C++) its iterations to stderr; both are captured at the file descriptors around its calls and logged at debug level
@@ -47,7 +47,7 @@ import numpy as np
 
 from plvo.data.dataset import Dataset
 from plvo.errors import PlvoError
-from plvo.eval.kiss import _scan_points, lidar_to_cam0, scan_reader
+from plvo.eval.kiss import _scan_points, lidar_to_cam0, sweep_end_to_frame_time, timed_scan_reader
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +55,10 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class KissSlamOptions:
     """KISS-SLAM settings beyond its own defaults: the odometry's threads (0 = all cores; the runner gives each of
-    its workers a share, as for KISS-ICP)."""
+    its workers a share, as for KISS-ICP); deskew: give it the scans' timestamps where they need them (as KISS-ICP)."""
 
     max_threads: int = 0
+    deskew: bool = True
 
 
 @dataclass(frozen=True)
@@ -179,14 +180,18 @@ def run_kiss_slam(dataset: Dataset, options: KissSlamOptions | None = None) -> K
     with _quiet():
         slam = KissSLAM(make_config(options))
     seconds = np.zeros(len(dataset))
-    no_times = np.zeros(0)  # no per-point timestamps: kiss_icp then does not deskew (see the module's docstring)
-    read = scan_reader(dataset)
+    no_times = np.zeros(0)  # kiss_icp leaves a scan without timestamps as it is
+    read = timed_scan_reader(dataset)
+    back = np.tile(np.eye(4), (len(dataset), 1, 1))  # as KISS-ICP's (plvo.eval.kiss.sweep_end_to_frame_time)
     started_at = time.perf_counter()
     for i in range(len(dataset)):
-        points = _scan_points(dataset, read, i, None)
+        scan, times = read(i)
+        points = _scan_points(dataset, scan, i, None)
+        stamps = times if options.deskew and times is not None else no_times
+        back[i] = sweep_end_to_frame_time(stamps, slam.odometry.last_delta)
         with _quiet():
             t0 = time.perf_counter()
-            slam.process_scan(points, no_times)
+            slam.process_scan(points, stamps)
             seconds[i] = time.perf_counter() - t0
     t0 = time.perf_counter()
     with _quiet():
@@ -199,6 +204,7 @@ def run_kiss_slam(dataset: Dataset, options: KissSlamOptions | None = None) -> K
                      for ref, query in slam.get_closures())
     calib = dataset.calib
     T_cam0_velo = np.asarray(calib.T_cam0_cam) @ np.asarray(calib.T_cam_velo)
+    lidar_poses = lidar_poses @ back  # deskewed scans' poses at the sweep's end -> at the frame's time
     poses = lidar_to_cam0(lidar_poses, T_cam0_velo)
     # the first frame's pose is the fixed identity of the graph; re-anchor anyway, as for KISS-ICP
     poses = np.linalg.inv(poses[0]) @ poses
