@@ -20,6 +20,7 @@ The System imports no viewer: recorders (Rerun, viser) are handed in from `plvo_
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import defaultdict
@@ -43,6 +44,7 @@ from plvo.results import KeyframeResult, TimingResult, TrackingResult
 from plvo.scheduler import Lags, Scheduler, drop_unreachable
 from plvo.timing import StageClock, timing_summary
 from plvo.tracking.frontend import Frontend, FrontendResult
+from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
 from plvo.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
@@ -86,6 +88,9 @@ class System:
         self._calib: Calibration | None = None
         self._depth_debug: list[Any] = []
         self._frame_now = 0
+        # the last keyframe's back-end job, read from the map at its frame and submitted at the next frame, once
+        # the motion to that frame completes its scan's deskewing (plvo.lidar.deskew.Sweep)
+        self._pending: tuple[KeyframeInfo, Any] | None = None
         if calib is not None:
             self._build(calib)
 
@@ -218,6 +223,8 @@ class System:
             self.n_lost += int(not res.ok)
             self._emit(frame.index, [r for r in (res.features, res) if r is not None])
             self._frame_poses.add(frame.index, res, frontend.map)
+            if self._pending is not None:
+                self._submit_pending(frame, res.T_world_cam)
             if res.keyframe is not None:
                 keyframe = self._on_keyframe(frame, res)
         stages = dict(self._clock.seconds)
@@ -234,12 +241,10 @@ class System:
         self._emit(frame.index, [keyframe, *self._depth_debug])
         self._depth_debug = []
         if self._backend is not None:
-            ch = self._backend.channel
             with self._clock.stage("apply"):
                 self._backend.catch_up(self._frame_now)
             with self._clock.stage("backend_submit"):
-                self._scheduler.submit(ch, self._backend.job(kf), frame.index)
-            self._scheduler.settle(ch)
+                self._pending = (kf, self._backend.job(kf))
         if self._loop is not None:
             with self._clock.stage("loop_submit"):
                 self._scheduler.submit(self._loop.channel, self._loop.job(kf), frame.index)
@@ -250,8 +255,23 @@ class System:
                 drop_unreachable(self._frontend.map, kf.kf_id, frame.index, self.config)
         return keyframe
 
+    def _submit_pending(self, frame: Frame | None, T_world_cam: np.ndarray | None) -> None:
+        """Submit the last keyframe's back-end job, its sweep completed with the motion to `frame` (tracked at
+        T_world_cam; None at the end of the run), due as if submitted at the keyframe's own frame."""
+        assert self._pending is not None and self._backend is not None and self._frontend is not None
+        kf, job = self._pending
+        self._pending = None
+        if frame is not None and T_world_cam is not None and job.sweep is not None:
+            job = dataclasses.replace(job, sweep=self._frontend.sweep_after(kf, frame, T_world_cam))
+        ch = self._backend.channel
+        with self._clock.stage("backend_submit"):
+            self._scheduler.submit(ch, job, kf.frame_index)
+        self._scheduler.settle(ch)
+
     def finish(self) -> None:
         """Wait for the workers to process every keyframe, apply and stream what they produced."""
+        if self._pending is not None:
+            self._submit_pending(None, None)
         self._scheduler.finish()
         if self.record.stats.corrections:
             log.info("loop closer corrected the map %d time(s)", self.record.stats.corrections)

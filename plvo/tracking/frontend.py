@@ -452,14 +452,25 @@ class Frontend:
         return info, n_new
 
     def _sweep(self, frame: Frame) -> Sweep | None:
-        """How the keyframe's scan is deskewed (plvo.lidar.deskew): the tracker's last motion, which is this frame's
-        (or after a loss the prediction's), over the time since the previous frame; None when not deskewed or no
-        motion is known yet (the first frame)."""
-        dt = None if self._prev_time is None else frame.time - self._prev_time
-        if not needs_deskew(frame, self.cfg.registration.deskew) or dt is None or not dt > 0:
+        """How the keyframe's scan is deskewed (plvo.lidar.deskew), as far as this frame tells: before the frame's
+        time, the tracker's last motion (this frame's, or after a loss the prediction's) over the time since the
+        previous frame (None at the first frame); the motion after it is the next frame's (`sweep_after`). None when
+        the scan is not deskewed."""
+        if not needs_deskew(frame, self.cfg.registration.deskew):
             return None
-        twist = twist_from_motion(self._velocity, dt, np.asarray(self.calib.T_cam_velo, float))
-        return Sweep(twist, frame.scan_time)
+        dt = None if self._prev_time is None else frame.time - self._prev_time
+        before = None if dt is None or not dt > 0 else \
+            twist_from_motion(self._velocity, dt, np.asarray(self.calib.T_cam_velo, float))
+        return Sweep(before, None, frame.scan_time)
+
+    def sweep_after(self, kf: KeyframeInfo, frame: Frame, T_world_cam: np.ndarray) -> Sweep | None:
+        """Keyframe kf's sweep completed with the motion from it to the next frame (tracked at T_world_cam), from
+        the keyframe's pose as the map has it now; as it was when the frames are not a positive time apart."""
+        if kf.sweep is None or not frame.time > kf.frame.time:
+            return kf.sweep
+        T_step = se3.inv(self.map.keyframe_pose(kf.kf_id)) @ np.asarray(T_world_cam, float)
+        return kf.sweep.with_after(twist_from_motion(T_step, frame.time - kf.frame.time,
+                                                     np.asarray(self.calib.T_cam_velo, float)))
 
     def _landmarks_from_priors(self, kf_id: int, state: _FrameState, priors: DepthPriors, lines: bool
                                ) -> tuple[int, int]:
