@@ -247,6 +247,42 @@ class LoopConfig:
     # Lidar place recognition beside the bags of words (plvo.loop.lidar_place, map-closures' density maps, which
     # find a place whichever way it is driven), verified by scan registration alone.
     lidar_place: bool = True
+    # A place node every this much driving: map_closures keeps 50-120 kB a node (15-35 kB a KITTI keyframe at 10 m)
+    # and a query costs ~4 ms a matching node; local maps reach 60 m further, so 10 m apart they overlap mostly.
+    lidar_place_spacing_m: float = 10.0
+    # A keyframe's local map: the scans of the keyframes this far before and after it (a node waits until the car is
+    # this far past it). Maps around the keyframe found a median 14 density-map inliers on true revisits, maps of the
+    # last 30 m 8 (plvo/loop/lidar_place.py).
+    lidar_place_reach_m: float = 20.0
+    # Local maps cropped to this radius: ORB leaves out 15.5 m (31 px) at the density image's border; 50 m found
+    # half the inliers of 70 m on the out-and-back twin.
+    lidar_place_radius_m: float = 70.0
+    lidar_place_voxel_m: float = 0.5  # local map voxel and density image pixel (map_closures'; 0.75 and 1 found less)
+    # ORB matches between density images within this Hamming distance: map_closures' 50 validated 4-10x more stored
+    # places at ~4 ms each on the project's machine (median query 85 ms against 9 at 145 nodes); 30 lost true matches.
+    lidar_place_hamming: int = 40
+    lidar_place_min_inliers: int = 5  # map_closures' own threshold: true revisits reached 5-24, other places 4 at most
+    # Verification by registering the two keyframes' local maps (plvo.loop.map_registration): of the query's map
+    # the points within this radius, which the candidate's map (the same place seen from up to 40 m) covers.
+    scan_verify_radius_m: float = 40.0
+    scan_min_overlap: float = 0.3  # share of the query's points matched: true revisits 0.6-0.99, twins and town
+    # RMS point-to-plane distance (each capped at 0.5 m): true revisits 0.03-0.06 m on the twins' deskewed scans, up
+    # to 0.12 m on their swept (raw) ones
+    scan_max_error_m: float = 0.15
+    # Smallest eigenvalue of the point-to-plane Hessian per point (rotations at a 10 m lever): true revisits
+    # 0.028-0.137 on twins and town, other places lined up (a street slid along itself, the town's look-alike
+    # streets) 0.002-0.034, a corridor ~0; scan_unique_m refuses those above it.
+    scan_min_constraint: float = 0.03
+    # ICP restarted this far to either side along the least constrained direction must come back within
+    # scan_unique_m: true revisits came back within 0.00-0.11 m, other places lined up ended 0.47-7.4 m away.
+    scan_basin_m: float = 3.0
+    scan_unique_m: float = 0.3
+    # A scan-verified loop edge joins keyframes at most this far apart (a candidate further away hands it to its
+    # neighbour nearest the query): the revisits the suite and the soak count are within 5 m.
+    scan_max_edge_m: float = 5.0
+    # A bag-of-words candidate refused for too few image matches with depth or PnP/PnL inliers is registered too,
+    # from the odometry's relative pose (the best such candidate of a keyframe: a registration costs 0.2-1 s).
+    scan_fallback: bool = True
     # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
     # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
     max_lag_frames: int = 20

@@ -98,6 +98,11 @@ RANGES: dict[str, Range] = {
     "loop.global_ba_max_move_m": NON_NEGATIVE, "loop.global_ba_move_fraction": NON_NEGATIVE,
     "loop.max_drift_fraction": NON_NEGATIVE, "loop.max_drift_floor_m": NON_NEGATIVE,
     "loop.max_view_m": POSITIVE,
+    "loop.lidar_place_spacing_m": NON_NEGATIVE, "loop.lidar_place_reach_m": NON_NEGATIVE,
+    "loop.lidar_place_radius_m": POSITIVE, "loop.lidar_place_voxel_m": POSITIVE, "loop.lidar_place_hamming": HAMMING,
+    "loop.lidar_place_min_inliers": Range(3), "loop.scan_verify_radius_m": POSITIVE, "loop.scan_min_overlap": SHARE,
+    "loop.scan_max_error_m": POSITIVE, "loop.scan_min_constraint": NON_NEGATIVE, "loop.scan_basin_m": NON_NEGATIVE,
+    "loop.scan_unique_m": POSITIVE, "loop.scan_max_edge_m": POSITIVE,
     "loop.max_lag_frames": COUNT0, "loop.global_ba_lag_frames": COUNT0,
 }
 

@@ -88,9 +88,9 @@ class System:
         self._calib: Calibration | None = None
         self._depth_debug: list[Any] = []
         self._frame_now = 0
-        # the last keyframe's back-end job, read from the map at its frame and submitted at the next frame, once
-        # the motion to that frame completes its scan's deskewing (plvo.lidar.deskew.Sweep)
-        self._pending: tuple[KeyframeInfo, Any] | None = None
+        # the last keyframe's back-end and loop jobs, read from the map at its frame and submitted at the next
+        # frame, once the motion to that frame completes its scan's deskewing (plvo.lidar.deskew.Sweep)
+        self._pending: tuple[KeyframeInfo, Any, Any] | None = None
         if calib is not None:
             self._build(calib)
 
@@ -240,15 +240,17 @@ class System:
         keyframe = KeyframeResult(frame.index, kf.kf_id, np.asarray(kf.T_world_cam), res.keyframe_reason)
         self._emit(frame.index, [keyframe, *self._depth_debug])
         self._depth_debug = []
+        backend_job = loop_job = None
         if self._backend is not None:
             with self._clock.stage("apply"):
                 self._backend.catch_up(self._frame_now)
             with self._clock.stage("backend_submit"):
-                self._pending = (kf, self._backend.job(kf))
+                backend_job = self._backend.job(kf)
         if self._loop is not None:
             with self._clock.stage("loop_submit"):
-                self._scheduler.submit(self._loop.channel, self._loop.job(kf), frame.index)
-            self._scheduler.settle(self._loop.channel)
+                loop_job = self._loop.job(kf)
+        if backend_job is not None or loop_job is not None:
+            self._pending = (kf, backend_job, loop_job)
         every = self.config.tracking.drop_unreachable_every
         if every and kf.kf_id % every == 0:
             with self._clock.stage("map_drop"):
@@ -256,17 +258,20 @@ class System:
         return keyframe
 
     def _submit_pending(self, frame: Frame | None, T_world_cam: np.ndarray | None) -> None:
-        """Submit the last keyframe's back-end job, its sweep completed with the motion to `frame` (tracked at
-        T_world_cam; None at the end of the run), due as if submitted at the keyframe's own frame."""
-        assert self._pending is not None and self._backend is not None and self._frontend is not None
-        kf, job = self._pending
+        """Submit the last keyframe's back-end and loop jobs, their sweep completed with the motion to `frame`
+        (tracked at T_world_cam; None at the end of the run), due as if submitted at the keyframe's own frame."""
+        assert self._pending is not None and self._frontend is not None
+        kf, backend_job, loop_job = self._pending
         self._pending = None
-        if frame is not None and T_world_cam is not None and job.sweep is not None:
-            job = dataclasses.replace(job, sweep=self._frontend.sweep_after(kf, frame, T_world_cam))
-        ch = self._backend.channel
-        with self._clock.stage("backend_submit"):
-            self._scheduler.submit(ch, job, kf.frame_index)
-        self._scheduler.settle(ch)
+        sweep = kf.sweep
+        if frame is not None and T_world_cam is not None and sweep is not None:
+            sweep = self._frontend.sweep_after(kf, frame, T_world_cam)
+        for stage, job, name in ((self._backend, backend_job, "backend_submit"), (self._loop, loop_job, "loop_submit")):
+            if stage is None or job is None:
+                continue
+            with self._clock.stage(name):
+                self._scheduler.submit(stage.channel, dataclasses.replace(job, sweep=sweep), kf.frame_index)
+            self._scheduler.settle(stage.channel)
 
     def finish(self) -> None:
         """Wait for the workers to process every keyframe, apply and stream what they produced."""

@@ -151,7 +151,7 @@ class LoopStage:
         from plvo.loop.worker import LoopJob, loop_keyframe
 
         return LoopJob(kf.kf_id, kf.frame_index, loop_keyframe(kf, self._K), self._map.poses(),
-                       self._scheduler.loop_corrections_applied)
+                       self._scheduler.loop_corrections_applied, kf.sweep)
 
     def apply(self, out: Any) -> None:
         t0 = time.perf_counter()

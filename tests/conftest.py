@@ -9,6 +9,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -68,3 +69,81 @@ def twin_root(kitti_root, tmp_path_factory) -> Path:
     settings = TwinSettings(str(kitti_root / "poses" / f"{TWIN_SEQUENCE}.txt"), TWIN_FRAMES, seed=0, traffic=8,
                             write_depth=True)
     return generate_twin(root, TWIN_SEQUENCE, settings)
+
+
+# --- an out-and-back twin: a street driven, turned on, and driven back (lidar loops in the opposite direction) -----
+
+OUTBACK_SEQUENCE = "00"
+
+
+def _out_and_back_poses(leg_m: float = 50.0, back_m: float = 70.0, radius_m: float = 6.0, lanes_m: float = 3.5,
+                        v_leg: float = 12.0, v_turn: float = 8.0, ramp_m: float = 8.0) -> np.ndarray:
+    """(N,4,4) KITTI cam0 poses (x right, y down, z forward; frame 0 the origin), 10 Hz: leg_m straight ahead at
+    v_leg, a turning loop (right arc a, left arc pi + 2a, right arc a, all of radius_m) at v_turn that ends lanes_m
+    to the left heading back, and back_m back (past the start)."""
+
+    def advance(p: np.ndarray, h: float, prim: tuple) -> tuple[np.ndarray, float]:
+        if prim[0] == "line":
+            return p + prim[1] * np.array([np.cos(h), np.sin(h)]), h
+        _, r, ang = prim
+        sg = np.sign(ang)
+        c = p + r * sg * np.array([-np.sin(h), np.cos(h)])
+        h2 = h + ang
+        return c + r * sg * np.array([np.sin(h2), -np.cos(h2)]), h2
+
+    def walk(prims: list, s: float | None = None) -> tuple[np.ndarray, float]:
+        """Position (x right, y forward) and heading at arc length s (the end when None)."""
+        p, h = np.zeros(2), np.pi / 2
+        for prim in prims:
+            length = prim[1] if prim[0] == "line" else prim[1] * abs(prim[2])
+            if s is not None and s <= length:
+                part = ("line", s) if prim[0] == "line" else ("arc", prim[1], np.sign(prim[2]) * s / prim[1])
+                return advance(p, h, part)
+            p, h = advance(p, h, prim)
+            if s is not None:
+                s -= length
+        return p, h
+
+    def turn(a: float) -> list:
+        return [("arc", radius_m, -a), ("arc", radius_m, np.pi + 2 * a), ("arc", radius_m, -a)]
+
+    lo, hi = 0.0, 1.5
+    for _ in range(60):  # the swing a that ends the turn lanes_m to the left
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if -walk(turn(mid))[0][0] < lanes_m else (mid, hi)
+    prims = [("line", leg_m), *turn(0.5 * (lo + hi)), ("line", back_m)]
+    total = leg_m + back_m + radius_m * (np.pi + 4 * 0.5 * (lo + hi))
+
+    def speed(s: float) -> float:
+        away = max(leg_m - s, s - (total - back_m), 0.0)  # metres from the turn
+        return v_turn + min(away / ramp_m, 1.0) * (v_leg - v_turn)
+
+    arc, s = [], 0.0
+    while s <= total:
+        arc.append(s)
+        for _ in range(100):
+            s += speed(s) * 1e-3
+    poses = []
+    for s in arc:
+        (x, y), h = walk(prims, s)
+        forward = np.array([np.cos(h), 0.0, np.sin(h)])
+        T = np.eye(4)
+        T[:3, 0], T[:3, 1], T[:3, 2] = np.cross([0.0, 1.0, 0.0], forward), [0.0, 1.0, 0.0], forward
+        T[:3, 3] = [x, 0.0, y]
+        poses.append(T)
+    return np.array(poses)
+
+
+@pytest.fixture(scope="session")
+def outback_twin(tmp_path_factory) -> Path:
+    """Root of a twin (sequence '00', no traffic) driven out 50 m along a city street at 12 m/s, turned on a 6 m
+    loop at 8 m/s and driven back 3.5 m to the left, 20 m past the start: 153 frames, the return seeing each place
+    from the other side 90-140 frames later (more than loop.min_keyframe_gap keyframes), and the last 20 m there
+    for the place nodes of the way back (lidar_place_reach_m). Generated once per session (~1-1.5 min)."""
+    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+
+    root = tmp_path_factory.mktemp("outback")
+    poses = _out_and_back_poses()
+    follow = root / "outback_poses.txt"
+    np.savetxt(follow, poses[:, :3].reshape(-1, 12), fmt="%.9e")
+    return generate_twin(root / "twin", OUTBACK_SEQUENCE, TwinSettings(str(follow), None, seed=0, traffic=0))

@@ -92,9 +92,12 @@ def test_loop_is_closed_and_end_point_error_falls(run):
     # back end, the loop correction, the global bundle adjustment after it
     assert len(graphs) == 3 and graphs[1].edge_kind.max() == EDGE_LOOP
     fq = rec.kf_frame[first.query_keyframe]
-    before, after = (float(np.linalg.norm(g.T_world_cam[first.query_keyframe, :3, 3] - gt[fq, :3, 3]))
-                     for g in graphs[:2])
-    assert after < before / 10.0, (before, after)  # measured 0.22 m -> 0.002 m
+    before, graph, adjusted = (float(np.linalg.norm(g.T_world_cam[first.query_keyframe, :3, 3] - gt[fq, :3, 3]))
+                               for g in graphs)
+    # measured 0.067 m before, 0.053 after the pose graph and 0.0018 after the global bundle adjustment (the back
+    # end's local-map registration leaves little for the pose graph, which moves the tracker's pose of the newest
+    # keyframe; the bundle adjustment on the registration edges and the loop edge puts it in place)
+    assert graph < before and adjusted < before / 10.0, (before, graph, adjusted)
     # The map holds the correction, the System's poses carry it and the tracker went on from the corrected map
     # without losing track: the frames from the loop on stay as close to the truth as after the correction. They
     # include the loop keyframes' own frames, whose poses System.step keeps relative to their keyframes from before

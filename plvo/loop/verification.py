@@ -7,7 +7,12 @@ needs LoopConfig.min_inliers inliers, of which LoopConfig.min_off_plane must lie
 of them (on the synthetic town, every false loop that passed PnP was supported only by the tiled road texture:
 at most 4 inliers off the road plane, against 12-84 for true revisits); then, when both keyframes carry a scan,
 scan registration (plvo.lidar.registration.align) refines T_C_Q from the visual estimate and must converge.
-Each rejection carries its reason.
+Each rejection carries its reason and the stage that refused it (`Verification.stage`).
+
+`verify_by_registration` verifies without image matches: the two keyframes' local maps are registered
+(plvo.loop.map_registration) from a relative pose found otherwise, for the candidates of the lidar place
+recognition (plvo.loop.lidar_place) and for bag-of-words candidates refused only for too few image matches with
+depth or PnP/PnL inliers.
 """
 
 from __future__ import annotations
@@ -26,11 +31,16 @@ from plvo.errors import PlvoError
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject
 from plvo.lidar.registration import align
+from plvo.loop.map_registration import MapAlignment, align_maps
 from plvo.loop.scans import scan_points
 from plvo.tracking.pnpl import solve_pnpl
 from plvo.types import DepthPriors, FeatureSet
 
 log = logging.getLogger(__name__)
+
+# The checks a verification can fail, in order (Verification.stage).
+TOO_FAR, MATCHES, PNP, PLANE, REGISTRATION, ODOMETRY = "too far", "matches", "pnp", "plane", "registration", "odometry"
+STAGES = (TOO_FAR, MATCHES, PNP, PLANE, REGISTRATION, ODOMETRY)
 
 
 @dataclass(frozen=True)
@@ -71,7 +81,10 @@ class Verification:
 
     accepted; T_cand_query (4,4) camera Q -> camera C (the loop edge; identity when rejected); counts of
     descriptor matches usable for PnP/PnL and of their inliers; registered: scan registration refined the pose;
-    reg_fitness; reason: why rejected, or a summary when accepted; time_s.
+    reg_fitness; reason: why rejected, or a summary when accepted; time_s. detector: who proposed the candidate
+    ("bow": the bags of words, "lidar": the lidar place recognition); stage: the check that refused it (one of
+    STAGES, "" when accepted); place_inliers: the place recognition's density-map inliers (0 for the bags of
+    words'); alignment: the local maps' registration when one ran (verify_by_registration).
     """
 
     query_id: int
@@ -86,6 +99,15 @@ class Verification:
     reg_fitness: float
     reason: str
     time_s: float
+    detector: str = "bow"
+    stage: str = ""
+    place_inliers: int = 0
+    alignment: MapAlignment | None = None
+
+    @property
+    def for_lack_of_matches(self) -> bool:
+        """Refused only because the images gave too few matches with depth or PnP/PnL inliers."""
+        return not self.accepted and self.stage in (MATCHES, PNP)
 
 
 def match_binary(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, max_dist: int) -> np.ndarray:
@@ -122,10 +144,11 @@ def _pnp_config(cfg: LoopConfig) -> TrackingConfig:
                           ransac_line_px=cfg.ransac_px, outlier_reproj_px=cfg.ransac_px, ransac_iterations=1000)
 
 
-def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str,
+def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str, stage: str,
             counts: tuple[int, int, int, int] = (0, 0, 0, 0)) -> Verification:
     log.info("loop candidate %d for keyframe %d rejected: %s", c.kf_id, q.kf_id, reason)
-    return Verification(q.kf_id, c.kf_id, False, np.eye(4), *counts, False, 0.0, reason, time.perf_counter() - t0)
+    return Verification(q.kf_id, c.kf_id, False, np.eye(4), *counts, False, 0.0, reason, time.perf_counter() - t0,
+                        stage=stage)
 
 
 def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConfig | None = None,
@@ -142,34 +165,62 @@ def verify(query: LoopKeyframe, cand: LoopKeyframe, K: np.ndarray, cfg: LoopConf
     n_pm, n_lm = len(pm), len(lm)
     if n_pm + n_lm < cfg.min_inliers:
         return _reject(query, cand, t0, f"only {n_pm} point + {n_lm} line matches with depth "
-                       f"(need {cfg.min_inliers})", (n_pm, n_lm, 0, 0))
+                       f"(need {cfg.min_inliers})", MATCHES, (n_pm, n_lm, 0, 0))
     res = solve_pnpl(K, cand.points_cam[pm[:, 1]], query.keypoints[pm[:, 0]], cand.lines_cam[lm[:, 1]],
                      query.segments[lm[:, 0]], None, _pnp_config(cfg))
     n_pi, n_li = int(res.point_inliers.sum()), int(res.line_inliers.sum())
     counts = (n_pm, n_lm, n_pi, n_li)
     if not res.success:
-        return _reject(query, cand, t0, f"PnP/PnL: {res.message}", counts)
+        return _reject(query, cand, t0, f"PnP/PnL: {res.message}", PNP, counts)
     T = res.T_world_cam  # world = candidate's camera: T_cand_query
     P_in = np.concatenate([cand.points_cam[pm[res.point_inliers, 1]],
                            cand.lines_cam[lm[res.line_inliers, 1]].reshape(-1, 3)])
     n_off = off_plane_count(P_in, cfg.plane_tolerance_m)
     if n_off < cfg.min_off_plane:
         return _reject(query, cand, t0, f"PnP/PnL inliers lie on one plane ({n_off} off it, need "
-                       f"{cfg.min_off_plane}): a repeated texture, not a place", counts)
+                       f"{cfg.min_off_plane}): a repeated texture, not a place", PLANE, counts)
     registered, fitness = False, 0.0
     if cfg.use_registration and query.scan is not None and cand.scan is not None:
         T, fitness, err = _register(query.scan, cand.scan, T, T_cam_velo, reg_cfg)
         if err:
-            return _reject(query, cand, t0, err, counts)
+            return _reject(query, cand, t0, err, REGISTRATION, counts)
         registered = True
     why = against_odometry(T) if against_odometry is not None else ""
     if why:
-        return _reject(query, cand, t0, why, counts)
+        return _reject(query, cand, t0, why, ODOMETRY, counts)
     msg = f"{n_pi}/{n_pm} point and {n_li}/{n_lm} line inliers" + (f", scan fitness {fitness:.2f}" if registered
                                                                     else ", no scan registration")
     log.info("loop %d -> %d accepted: %s", query.kf_id, cand.kf_id, msg)
     return Verification(query.kf_id, cand.kf_id, True, T, *counts, registered, fitness, msg,
                         time.perf_counter() - t0)
+
+
+def verify_by_registration(query_id: int, cand_id: int, query_map: np.ndarray, cand_map: np.ndarray,
+                           T_init: np.ndarray, cfg: LoopConfig, T_cam_velo: np.ndarray | None = None,
+                           against_odometry: Callable[[np.ndarray], str] | None = None, detector: str = "lidar",
+                           place_inliers: int = 0, counts: tuple[int, int, int, int] = (0, 0, 0, 0),
+                           prefix: str = "") -> Verification:
+    """Verify candidate cand_id for keyframe query_id by registering their local maps ((N,3), (M,3), each in its
+    keyframe's lidar frame, plvo.loop.lidar_place.LocalMaps) from T_init (4,4) T_cand_query in camera frames;
+    against_odometry as for `verify`. counts carry a failed image verification's matches; prefix its reason."""
+    t0 = time.perf_counter()
+    T_cv = np.eye(4) if T_cam_velo is None else np.asarray(T_cam_velo, float)
+    a = align_maps(query_map, cand_map, se3.inv(T_cv) @ np.asarray(T_init, float) @ T_cv, cfg, cfg.lidar_place_voxel_m)
+
+    def done(accepted: bool, T: np.ndarray, reason: str, stage: str) -> Verification:
+        reason = prefix + reason
+        log.info("loop candidate %d (%s) for keyframe %d %s: %s", cand_id, detector, query_id,
+                 "registered" if accepted else "rejected", reason)
+        return Verification(query_id, cand_id, accepted, T, *counts, True, a.overlap, reason,
+                            time.perf_counter() - t0, detector, stage, place_inliers, a)
+
+    if not a.accepted:
+        return done(False, np.eye(4), f"scan registration: {a.reason}", REGISTRATION)
+    T = np.round(T_cv @ a.T_dst_src @ se3.inv(T_cv), 9)
+    why = against_odometry(T) if against_odometry is not None else ""
+    if why:
+        return done(False, np.eye(4), f"scan registration ({a.summary()}), but {why}", ODOMETRY)
+    return done(True, T, f"scan registration: {a.summary()}", "")
 
 
 def _register(query_scan: np.ndarray, cand_scan: np.ndarray, T_cand_query: np.ndarray, T_cam_velo: np.ndarray | None,

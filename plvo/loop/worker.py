@@ -2,11 +2,12 @@
 
 A `LoopJob` carries the keyframe as the closer keeps it (`LoopKeyframe`: features, depth priors as camera-frame 3D
 points and lines, the scan) and every keyframe pose as the map had them when it was made. `LoopCore` runs it
-through `LoopCloser` (BoW query, verification, on an accepted loop a pose-graph correction) and returns a
-`LoopOutput`: the recorders' results and, for an accepted loop, a `MapCorrection` with the loop edge. The System
-applies it at a fixed frame; then it submits a `GlobalBAJob` (every keyframe, graph edge and the points two
-keyframes see, read from the map at that point), whose correction is applied at a later fixed frame. The core never
-touches the map.
+through `LoopCloser` (BoW query, lidar place recognition, verification, on an accepted loop a pose-graph
+correction) and returns a `LoopOutput`: the recorders' results and, for an accepted loop, a `MapCorrection` with
+the loop edge. Each verified candidate becomes a `LoopResult` whose reason names the detector that proposed it
+("bag of words" or "lidar place") and why it was accepted or refused. The System applies the output at a fixed
+frame; then it submits a `GlobalBAJob` (every keyframe, graph edge and the points two keyframes see, read from the
+map at that point), whose correction is applied at a later fixed frame. The core never touches the map.
 
 The core's own estimate of the poses: the map's poses of the job, with the corrections this core made and the map
 had not applied yet re-applied to them by the map's rule (plvo.tracking.corrections), so that a correction in
@@ -16,8 +17,9 @@ what moved since (the back end's refinements) is carried over.
 The global bundle adjustment (plvo.loop.global_ba) refines every keyframe pose and every point landmark two
 keyframes see, on the back end's registration edges (the pose graph's odometry where there are none) and the loop
 edges plus the point factors; points it did not adjust and all lines move rigidly with the keyframe that created
-them. Timings: loop_bow, loop_query, loop_verify, loop_correct (pose graph), loop_global_ba, loop (all), seconds,
-one entry a keyframe (the correction stages are 0 where no loop was accepted).
+them. Timings: loop_bow, loop_query, loop_lidar (the place recognition), loop_verify, loop_correct (pose graph),
+loop_global_ba, loop (all), seconds, one entry a keyframe (the correction stages are 0 where no loop was
+accepted).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import numpy as np
 from plvo.backend.problem import BAResult
 from plvo.config import SystemConfig
 from plvo.heap import release_free_memory
+from plvo.lidar.deskew import Sweep
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import LoopKeyframe
@@ -46,14 +49,15 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopJob:
-    """One keyframe for the loop closer: the keyframe, every keyframe pose (K,4,4) by id as the map had them, and
-    how many of the loop closer's corrections the map had applied then."""
+    """One keyframe for the loop closer: the keyframe, every keyframe pose (K,4,4) by id as the map had them, how
+    many of the loop closer's corrections the map had applied then, and how its scan is deskewed (None: as it is)."""
 
     kf_id: int
     frame_index: int
     keyframe: LoopKeyframe
     T_world_cam: np.ndarray
     corrections_applied: int
+    sweep: Sweep | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,8 @@ class LoopCore:
         if job.kf_id:
             self.closer.update_poses(np.arange(job.kf_id), poses[: job.kf_id])
         lk = dataclasses.replace(job.keyframe, T_world_cam=poses[job.kf_id])
+        if job.sweep is not None and lk.scan is not None:  # in the worker: off the tracking thread
+            lk = dataclasses.replace(lk, scan=job.sweep.apply(lk.scan))
         outcome = self.closer.on_keyframe(lk)
         correction = None
         if outcome.accepted is not None and outcome.poses_before is not None and outcome.poses_after is not None:
@@ -127,7 +133,7 @@ class LoopCore:
             self._made.append(correction)
         corrected = correction is not None
         timings = {"loop_bow": 1e-3 * outcome.bow_ms, "loop_query": 1e-3 * outcome.query_ms,
-                   "loop_verify": 1e-3 * outcome.verify_ms,
+                   "loop_lidar": 1e-3 * outcome.lidar_ms, "loop_verify": 1e-3 * outcome.verify_ms,
                    "loop_correct": 1e-3 * outcome.correct_ms if corrected else 0.0,
                    "loop": time.perf_counter() - t0}
         return LoopOutput(job.frame_index, correction, tuple(_results(job.frame_index, outcome)), timings, outcome)
@@ -200,19 +206,36 @@ def loop_keyframe(kf: KeyframeInfo, K: np.ndarray) -> LoopKeyframe:
     return LoopKeyframe.from_features(kf.kf_id, kf.T_world_cam, kf.features, priors, K, scan, kf.frame_index)
 
 
+def _source(detector: str) -> str:
+    return "lidar place" if detector == "lidar" else "bag of words"
+
+
 def _results(frame_index: int, outcome: LoopOutcome) -> list[object]:
-    """One LoopResult a verified candidate (or for the best candidate when none was verified), and the counts."""
+    """One LoopResult a verified candidate (or for the best candidate of each detector when none was verified),
+    and the counts. The reason begins with the detector that proposed the candidate; n_inliers is the PnP/PnL
+    inliers of a bag-of-words candidate, the density-map inliers of a lidar place's; query_keyframe is the keyframe
+    whose place was matched (for a lidar place, a node lidar_place_reach_m behind the job's keyframe)."""
     det = outcome.detection
     score = {int(c): float(s) for c, s in zip(det.candidates, det.normalised)}
     out: list[object] = []
     for v in outcome.verifications:
+        n = v.place_inliers if v.detector == "lidar" else v.n_point_inliers + v.n_line_inliers
         out.append(LoopResult(
-            frame_index, outcome.kf_id, int(v.cand_id), bool(v.accepted), score.get(int(v.cand_id), np.nan),
-            int(v.n_point_inliers + v.n_line_inliers), v.T_cand_query if v.accepted else None, v.reason))
-    if not outcome.verifications and len(det.candidates):
-        out.append(LoopResult(frame_index, outcome.kf_id, int(det.candidates[0]), False,
-                              float(det.normalised[0]), 0, None, "; ".join(outcome.rejections)))
+            frame_index, int(v.query_id), int(v.cand_id), bool(v.accepted), score.get(int(v.cand_id), np.nan), int(n),
+            v.T_cand_query if v.accepted else None, f"{_source(v.detector)}: {v.reason}"))
+    if not outcome.verifications:
+        why = "; ".join(outcome.rejections)
+        if len(det.candidates):
+            out.append(LoopResult(frame_index, outcome.kf_id, int(det.candidates[0]), False,
+                                  float(det.normalised[0]), 0, None, f"{_source('bow')}: {why}"))
+        for p in outcome.places:
+            if p.candidates:
+                c = p.candidates[0]
+                out.append(LoopResult(frame_index, p.kf_id, c.kf_id, False, np.nan, c.inliers, None,
+                                      f"{_source('lidar')}: {why}"))
+    n_place = sum(len(p.candidates) for p in outcome.places)
     out.append(MetricsResult(frame_index, {"loop_candidates": float(len(det.candidates)),
+                                           "loop_place_candidates": float(n_place),
                                            "loop_verified": float(len(outcome.verifications)),
                                            "loop_closed": float(outcome.accepted is not None)}))
     return out
