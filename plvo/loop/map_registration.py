@@ -4,7 +4,8 @@ A loop edge found without image matches (by the lidar place recognition, plvo.lo
 candidate with too few matches with depth) rests on the lidar alone. The query's local map (cropped to
 `loop.scan_verify_radius_m` around its keyframe) is registered onto the candidate's (open3d point-to-plane ICP,
 Tukey kernel, correspondences within 2 m, then 1 m on the maps thinned to twice their voxel, then 0.5 m on the maps
-themselves) from the place recognition's relative pose or the odometry's, and the result must be unambiguous:
+themselves) from the place recognition's relative pose or the odometry's, its height set so that the two maps'
+ground lines up (`_level`), and the result must be unambiguous:
 
 - converged: one more Gauss-Newton step of the last stage (its correspondences, its Tukey weights) moves it less
   than 1 cm and 0.05 degrees;
@@ -53,6 +54,7 @@ _REG = o3d.pipelines.registration
 LEVER_M = 10.0  # a rotation counts as the motion it gives this far away, against a translation
 INLIER_RESIDUAL_M = 0.2  # correspondences this close to their plane make the Hessian (4x the twins' plane noise)
 MIN_POINTS = 500
+GROUND_RADIUS_M = 15.0  # the ground around the candidate's sensor that sets the start's height (`_level`)
 # (max correspondence m, which source cloud, iterations): a wide first stage for a start a metre or two off
 _STAGES = ((2.0, "coarse", 50), (1.0, "coarse", 50), (0.5, "fine", 60))
 
@@ -145,7 +147,7 @@ def align_maps(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray, cfg: LoopCo
     clouds = {"fine": fine, "coarse": fine.voxel_down_sample(2.0 * voxel_m)}
     target = _cloud(dst)
     target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=10))
-    T = _round(_icp(clouds, target, T_init))
+    T = _round(_icp(clouds, target, _level(src, dst, T_init)))
     q = np.asarray(target.points)
     normals = np.asarray(target.normals)
     fit = _measure(se3.transform_points(T, src), cKDTree(q), q, normals, voxel_m)
@@ -175,6 +177,24 @@ def align_maps(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray, cfg: LoopCo
         return refuse(f"ambiguous: a registration started {cfg.scan_basin_m:.1f} m along {_direction(weak)} ends "
                       f"{basin:.2f} m away ({found})", T, overlap, error, constraint, basin)
     return MapAlignment(T, overlap, error, constraint, basin, len(src), "", time.perf_counter() - t0)
+
+
+def _level(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray) -> np.ndarray:
+    """T_init with its height set so that the two maps' ground (the 10th percentile of height within GROUND_RADIUS_M
+    of the candidate's sensor) lines up. The place recognition aligns density images from above and says nothing
+    of height, and two passes over one place can differ in it by metres: the KITTI twins' ground truth, which they
+    keep, puts some revisits metres higher than the first pass (up to 7.6 m on 08, docs/twins.md); from 7 m off the
+    first ICP stage (2 m) does not converge (tests/test_lidar_place.py)."""
+    moved = se3.transform_points(T_init, src)
+    ground = []
+    for pts in (moved, dst):
+        near = pts[np.einsum("ij,ij->i", pts[:, :2], pts[:, :2]) <= GROUND_RADIUS_M ** 2]
+        if len(near) < MIN_POINTS:
+            return T_init
+        ground.append(float(np.percentile(near[:, 2], 10)))
+    out = T_init.copy()
+    out[2, 3] += ground[1] - ground[0]
+    return out
 
 
 def _round(T: np.ndarray) -> np.ndarray:
