@@ -1,12 +1,13 @@
 """The back end inside the whole System: it must make the trajectory better, and a bad registration must
 get a small zeta and leave the trajectory where a good one puts it.
 
-One short synthetic town sequence (seed 0, 10 m/s) is run six times with inline workers (deterministic):
+One short synthetic town sequence (seed 0, 10 m/s) is run eight times with inline workers (deterministic):
 odometry alone, the full system, the system without the scale correction module (Ours (#)), and with keyframe-to-
 keyframe NDT (`backend.lidar_target = "keyframe"`) the full system, the full system with one registration
 corrupted (the NDT result moved 0.5 m and 1 deg, inside the jump gate, so it is accepted as converged), and the
 same corruption with the paper's printed zeta formula as a control (it gives the bad registration a large weight,
-and the trajectory follows it: the corruption is strong enough for the test to fail). Features and depth priors
+and the trajectory follows it: the corruption is strong enough for the test to fail), these with zeta alone
+weighing the edges; and the paper's formula again with the residual weight of the defaults. Features and depth priors
 do not depend on the back end, so they are computed once and reused by the later runs.
 """
 
@@ -91,12 +92,16 @@ def runs(synth_sequence_factory):
         rec = _Zetas()
         out["no_module"] = run_dataset(ds, with_ablation(base, "no_scale_correction"), rec).poses
         out["no_module_zeta"] = rec.zeta
-        ndt = merge(base, {"backend": {"lidar_target": "keyframe"}})
+        # zeta alone weighs the edges here (no residual weight), as the paper has it
+        ndt = merge(base, {"backend": {"lidar_target": "keyframe", "relative_pose_residual_power": 0.0}})
         rec = _Zetas()
         out["full_ndt"] = run_dataset(ds, ndt, rec).poses
         out["full_ndt_zeta"] = rec.zeta
+        weighted = merge(ndt, {"backend": {"relative_pose_residual_power": base.backend.relative_pose_residual_power}})
+        out["full_ndt_weighted"] = run_dataset(ds, weighted, _Zetas()).poses
         run = registration._run
-        for formula in ("inverse", "paper"):
+        for formula, name, start in (("inverse", "inverse", ndt), ("paper", "paper", ndt),
+                                     ("paper", "paper_weighted", weighted)):
             calls = {"n": 0}
 
             def corrupted(method, src, dst, init, cfg, calls=calls):
@@ -106,9 +111,9 @@ def runs(synth_sequence_factory):
 
             mp.setattr(registration, "_run", corrupted)
             rec = _Zetas()
-            cfg = merge(ndt, {"registration": {"zeta_formula": formula}})
-            out[f"corrupt_{formula}"] = run_dataset(ds, cfg, rec).poses
-            out[f"corrupt_{formula}_zeta"] = rec.zeta
+            cfg = merge(start, {"registration": {"zeta_formula": formula}})
+            out[f"corrupt_{name}"] = run_dataset(ds, cfg, rec).poses
+            out[f"corrupt_{name}_zeta"] = rec.zeta
             mp.setattr(registration, "_run", run)
     return out
 
@@ -157,3 +162,7 @@ def test_corrupted_registration_gets_small_zeta_and_does_not_pull(runs):
     assert runs["corrupt_paper_zeta"][bad_frame] > 0.3
     pulled = np.linalg.norm(full[:, :3, 3] - runs["corrupt_paper"][:, :3, 3], axis=1).max()
     assert pulled > 0.2, pulled
+    # the residual weight (backend.relative_pose_residual_power) also sees the corrupted alignment, whose residual
+    # grows, and keeps it from pulling even under the paper's formula
+    held = np.linalg.norm(runs["full_ndt_weighted"][:, :3, 3] - runs["corrupt_paper_weighted"][:, :3, 3], axis=1)
+    assert held.max() < 0.05, held.max()

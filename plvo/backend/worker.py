@@ -171,7 +171,8 @@ class BackendCore:
         zeta = reg.zeta if reg.converged else 0.0
         log.debug("registration kf %d -> %d: %s, e_hat %.3f e_bar %.3f zeta %.3f (%.0f ms)", j, i, reg.method,
                   reg.e_hat, reg.e_bar, zeta, 1e3 * reg.time_s)
-        return reg, GraphEdge(i, j, reg.T_camdst_camsrc, zeta, EDGE_ODOMETRY)
+        return reg, GraphEdge(i, j, reg.T_camdst_camsrc, zeta, EDGE_ODOMETRY, residual_weight(reg.e_bar,
+                                                                                               self.cfg.backend))
 
     def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan
                          ) -> tuple[RegistrationResult | None, GraphEdge | None]:
@@ -197,7 +198,7 @@ class BackendCore:
             if not al.converged:
                 log.info("registration of keyframe %d to the local map failed: %s", kf_id, al.why)
             edge = GraphEdge(int(w.kf_ids[prev]), kf_id, reg.T_camdst_camsrc, al.zeta if al.converged else 0.0,
-                             EDGE_ODOMETRY)
+                             EDGE_ODOMETRY, residual_weight(al.e_bar, self.cfg.backend))
             log.debug("local map kf %d: e_hat %.3f e_bar %.3f zeta %.3f fitness %.2f (%.0f ms, %d map points)", kf_id,
                       al.e_hat, al.e_bar, al.zeta, al.fitness, 1e3 * al.time_s, al.n_map)
             if al.converged:
@@ -219,6 +220,16 @@ class BackendCore:
             base_version=w.version)
 
 
+def residual_weight(e_bar: float, b: BackendConfig) -> float:
+    """The information factor of a registration edge whose alignment left a residual of e_bar metres (its mean
+    point-to-plane distance): (relative_pose_residual_m / e_bar)^(2 relative_pose_residual_power), so that the
+    factor's standard deviations are sigma_relative_pose / sigma_relative_rotation_deg times
+    (e_bar / relative_pose_residual_m)^power; 1 where e_bar is unknown (a failed alignment, whose zeta is 0)."""
+    if not (np.isfinite(e_bar) and e_bar > 0) or b.relative_pose_residual_power == 0:
+        return 1.0
+    return float((b.relative_pose_residual_m / e_bar) ** (2.0 * b.relative_pose_residual_power))
+
+
 def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[GraphEdge, ...]) -> BAProblem | None:
     """The window as a BAProblem (its first keyframe fixed), with the graph's and the new relative-pose edges."""
     if len(w.point_ids) == 0:
@@ -232,7 +243,7 @@ def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[Gr
     if edges:
         args.update(
             rel_ij=np.array([[row[e.i], row[e.j]] for e in edges], int),
-            rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([e.zeta for e in edges]),
+            rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([e.information for e in edges]),
             rel_weight=np.r_[np.full(3, b.sigma_relative_pose**-2),
                              np.full(3, np.radians(b.sigma_relative_rotation_deg) ** -2)],
         )

@@ -184,7 +184,7 @@ class LoopCore:
         odometry, _ = self.closer.pose_graph_edges()
         row = {int(k): n for n, k in enumerate(ids)}
         weak = global_ba.pose_graph_zeta(self.cfg.loop, self.cfg.backend)
-        registered = [(row[e.i], row[e.j], e.T_i_j, e.zeta) for e in graph
+        registered = [(row[e.i], row[e.j], e.T_i_j, e.information) for e in graph
                       if e.kind == EDGE_ODOMETRY and e.i in row and e.j in row and e.zeta > 0]
         have = {(i, j) for i, j, _, _ in registered}
         closer_ids = self.closer.poses()[0]

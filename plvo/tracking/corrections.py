@@ -37,13 +37,20 @@ def _none(shape: tuple[int, ...], dtype: type = float):
 @dataclass(frozen=True)
 class GraphEdge:
     """A relative-pose constraint between keyframes i < j: T_i_j (4,4) maps camera j into camera i; zeta its
-    information weight (0: unusable); kind plvo.results.EDGE_ODOMETRY (a registration) or EDGE_LOOP."""
+    information weight (0: unusable); kind plvo.results.EDGE_ODOMETRY (a registration) or EDGE_LOOP; weight a
+    further factor of its information, from the alignment's residual (plvo.backend.worker.residual_weight); the
+    optimisations use zeta * weight."""
 
     i: int
     j: int
     T_i_j: np.ndarray
     zeta: float
     kind: int
+    weight: float = 1.0
+
+    @property
+    def information(self) -> float:
+        return self.zeta * self.weight
 
 
 @dataclass(frozen=True)
