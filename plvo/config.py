@@ -285,8 +285,9 @@ class LoopConfig:
     scan_basin_m: float = 3.0
     scan_unique_m: float = 0.3
     # A scan-verified loop edge joins keyframes at most this far apart (a candidate further away hands it to its
-    # neighbour nearest the query): the revisits the suite and the soak count are within 5 m.
-    scan_max_edge_m: float = 5.0
+    # neighbour nearest the query, so the edge joins the nearest views there are): local maps reach 20 m either side
+    # of their keyframe, and KITTI 09's return ends 16 m from its first keyframes (registered with overlap 0.93).
+    scan_max_edge_m: float = 20.0
     # A bag-of-words candidate refused for too few image matches with depth or PnP/PnL inliers is registered too,
     # from the odometry's relative pose (the best such candidate of a keyframe: a registration costs 0.2-1 s).
     scan_fallback: bool = True

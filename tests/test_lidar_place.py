@@ -137,7 +137,7 @@ def test_a_street_driven_back_is_found_and_registered_to_the_centimetre(outback,
     for e in accepted:
         Tq, Tm = outback.gt[outback.frames[e.query_id]], outback.gt[outback.frames[e.match_id]]
         # the two views of one place, from the other lane and the other way, more than the minimum gap apart
-        assert np.linalg.norm(Tq[:3, 3] - Tm[:3, 3]) < 5.0
+        assert np.linalg.norm(Tq[:3, 3] - Tm[:3, 3]) < LoopConfig().scan_max_edge_m
         assert _heading_deg(Tq, Tm) > 150.0
         assert e.query_id - e.match_id > LoopConfig().min_keyframe_gap
         m, deg = _error(e.T_match_query, se3.inv(Tm) @ Tq)
@@ -256,7 +256,7 @@ def test_town_loop_precision(town):
             assert v.reason
             if v.accepted:
                 Tq, Tm = town.gt[town.frames[v.query_id]], town.gt[town.frames[v.cand_id]]
-                assert np.linalg.norm(Tq[:3, 3] - Tm[:3, 3]) < 5.0
+                assert np.linalg.norm(Tq[:3, 3] - Tm[:3, 3]) < LoopConfig().scan_max_edge_m
                 m, deg = _error(v.T_cand_query, se3.inv(Tm) @ Tq)
                 assert m < 0.05 and deg < 0.2, (v.query_id, v.cand_id, m, deg)
     assert any(o.accepted is not None for o in outcomes)  # the lap's return to its first street
