@@ -38,7 +38,8 @@ from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, k
 from plvo_app.source_args import add_source_arguments
 
 log = logging.getLogger(__name__)
-TABLE_I_ABLATIONS = "full,no_depth_priors,no_scale_correction,points_only"  # Ours (*), (-), (#), point-only
+# the paper's Ours (*), (-), (#) and point-only, then each lidar-side component of plvo's own switched off
+TABLE_I_ABLATIONS = "full,no_depth_priors,no_scale_correction,points_only,no_deskew,keyframe_ndt,no_lidar_loops"
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
