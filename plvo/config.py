@@ -272,7 +272,7 @@ class LoopConfig:
     # Verification by registering the two keyframes' local maps (plvo.loop.map_registration): of the query's map
     # the points within this radius, which the candidate's map (the same place seen from up to 40 m) covers.
     scan_verify_radius_m: float = 40.0
-    # Share of the query's points matched: accepted revisits 0.57-1.00 on the twins 01, 03-05, 07-10; a corner of 08
+    # Share of the query's points matched: accepted revisits 0.57-1.00 on the twins 01 and 03-10; a corner of 08
     # seen from two streets passed with 0.40 (error 0.124 m), its edge 0.54 m / 2.0 deg off (0.3 took it).
     scan_min_overlap: float = 0.5
     # RMS point-to-plane distance (each capped at 0.5 m): true revisits 0.03-0.06 m on the twins' deskewed scans, up
