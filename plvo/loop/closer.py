@@ -20,9 +20,9 @@ ORB-SLAM's essential graph takes them: the motions the tracker measured when eac
 worse in heading (plvo.eval.stage_drift). The newest keyframe's pose is still the tracker's (its back-end result comes
 later), so the global bundle adjustment that follows, on the back end's registration edges, finishes the work.
 The system must apply the corrected poses to its map (and tracker) and tell the closer of later changes with
-`update_poses`; the odometry edge of a new keyframe is measured against the closer's estimate of the previous
-one. The global bundle adjustment that follows (plvo.loop.global_ba) needs the map's landmarks, so the loop
-worker runs it, on the same edges (`pose_graph_edges`).
+`update_poses`; the distance a new keyframe adds to the drive (the odometry checks' measure) is taken from the
+closer's estimate of the previous one. The global bundle adjustment that follows (plvo.loop.global_ba) needs
+the map's landmarks, so the loop worker runs it, on the same edges (`pose_graph_edges`).
 """
 
 from __future__ import annotations
@@ -146,7 +146,6 @@ class LoopCloser:
         self._kfs = KeyframeStore()  # every keyframe, compact (compact_keyframe), on disk
         self._ids: list[int] = []
         self._poses: dict[int, np.ndarray] = {}
-        self._odom: dict[int, np.ndarray] = {}  # kf id -> T_prev_kf measured when it arrived (the distance driven)
         self._index: dict[int, int] = {}  # kf id -> arrival index
         self._driven: list[float] = []  # metres of odometry from the first keyframe to each, by arrival index
         self.edges: list[LoopEdge] = []
@@ -216,9 +215,7 @@ class LoopCloser:
         """Book the keyframe's arrival (pose, odometry, distance driven) -> it as the query, its scan compacted."""
         step = 0.0
         if self._ids:
-            prev = self._ids[-1]
-            self._odom[kf.kf_id] = se3.inv(self._poses[prev]) @ kf.T_world_cam
-            step = float(np.linalg.norm(self._odom[kf.kf_id][:3, 3]))
+            step = float(np.linalg.norm((se3.inv(self._poses[self._ids[-1]]) @ kf.T_world_cam)[:3, 3]))
         self._index[kf.kf_id] = len(self._ids)
         self._driven.append((self._driven[-1] if self._driven else 0.0) + step)
         scan = None if kf.scan is None or not self.cfg.use_registration else compact_scan(kf.scan, self.reg_cfg)
