@@ -47,18 +47,24 @@ def revisits(gt: np.ndarray, kf_frame: dict[int, int], gap: int, max_m: float = 
 
 
 def detection_stats(gt: np.ndarray, kf_frame: dict[int, int], accepted: list[tuple[int, int]], gap: int,
-                    cooldown: int) -> dict[str, int]:
+                    cooldown: int, edges: list[np.ndarray | None] | None = None) -> dict[str, int]:
     """Ground truth (N,4,4) by frame, keyframe id -> frame, accepted loops (query, match) -> counts for precision
-    and recall (see the module doc)."""
+    and recall (see the module doc). edges: the accepted loops' T_match_query (4,4) in the same order, where known;
+    then a loop that joins no revisit (a street driven back the other way) still counts in n_true when its edge is
+    true (`loop_edge_errors`); recall stays that of the revisits."""
     truth = revisits(gt, kf_frame, gap)
     true = [(q, m) for q, m in accepted if m in truth.get(q, set())]
+    n_true = len(true)
+    if edges is not None:
+        n_true = sum(1 for (q, m), T in zip(accepted, edges, strict=True) if m in truth.get(q, set()) or (
+            T is not None and any(e["true"] for e in loop_edge_errors(gt, kf_frame, [(m, q, T)]))))
     qs = sorted(truth)
     passages: list[list[int]] = [[q] for q in qs[:1]]
     for q in qs[1:]:
         (passages[-1].append(q) if q == passages[-1][-1] + 1 else passages.append([q]))
     found = {q for q, _ in true}
     covered = [q for q in qs if any(0 <= q - a <= cooldown for a in found)]
-    return {"n_accepted": len(accepted), "n_true": len(true), "n_revisit_keyframes": len(qs),
+    return {"n_accepted": len(accepted), "n_true": n_true, "n_revisit_keyframes": len(qs),
             "n_passages": len(passages), "n_passages_found": sum(1 for p in passages if found & set(p)),
             "n_revisit_keyframes_covered": len(covered)}
 

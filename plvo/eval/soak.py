@@ -241,21 +241,14 @@ def _loops(tap: SoakTap, gt: np.ndarray, index: dict[int, int]) -> list[dict]:
 
 def _detection(tap: SoakTap, gt: np.ndarray, index: dict[int, int], config: SystemConfig) -> dict:
     """Precision and recall of the accepted loops against the ground truth's revisits (plvo.eval.revisits)."""
-    from plvo.eval.revisits import detection_stats, loop_edge_errors, revisits
+    from plvo.eval.revisits import detection_stats
 
     kf_frame = {k: index[f] for k, f in tap.kf_frame.items() if f in index}
-    accepted = [(r.query_keyframe, r.match_keyframe) for r in tap.loops if r.accepted]
-    stats: dict[str, Any] = dict(detection_stats(gt, kf_frame, accepted, config.loop.min_keyframe_gap,
-                                                 config.loop.loop_cooldown))
-    # a loop that joins no same-direction revisit (a street driven back the other way, plvo.eval.revisits) is still
-    # true when its edge is: judged by the edge against the truth's relative pose
-    truth = revisits(gt, kf_frame, config.loop.min_keyframe_gap)
-    true = 0
-    for r in (r for r in tap.loops if r.accepted):
-        by_edge = r.T_match_query is not None and any(e["true"] for e in loop_edge_errors(
-            gt, kf_frame, [(r.match_keyframe, r.query_keyframe, r.T_match_query)]))
-        true += int(r.match_keyframe in truth.get(r.query_keyframe, set()) or by_edge)
-    stats["n_true"] = true
+    loops = [r for r in tap.loops if r.accepted]
+    # a loop joining no same-direction revisit (a street driven back) is true when its edge is (plvo.eval.revisits)
+    stats: dict[str, Any] = dict(detection_stats(
+        gt, kf_frame, [(r.query_keyframe, r.match_keyframe) for r in loops], config.loop.min_keyframe_gap,
+        config.loop.loop_cooldown, edges=[r.T_match_query for r in loops]))
     refused = [r for r in tap.loops if not r.accepted and REPEATED_PLACE in (r.reason or "")]
     stats["n_refused_by_odometry"] = len(refused)
     stats["n_refused_after_geometry"] = sum(1 for r in refused if r.n_inliers > 0)
