@@ -285,15 +285,13 @@ class LoopCloser:
         """Book a verification (checks and rejections stay parallel until one is accepted); an accepted one makes
         the loop edge (True)."""
         checks.append(v)
-        source = "lidar place" if v.detector == "lidar" else "bag of words"
-        rejections.append(f"candidate {v.cand_id} ({source}): {v.reason}")
+        rejections.append(f"candidate {v.cand_id} ({v.source}): {v.reason}")
         if not v.accepted:
             return False
         rejections.pop()
         if v.alignment is not None:
             log.info("loop %d -> %d accepted (%s): %s", v.query_id, v.cand_id, v.detector, v.reason)
-        n = v.place_inliers if v.detector == "lidar" else v.n_point_inliers + v.n_line_inliers
-        self.edges.append(LoopEdge(v.query_id, v.cand_id, v.T_cand_query, n, v.registered, v.detector))
+        self.edges.append(LoopEdge(v.query_id, v.cand_id, v.T_cand_query, v.support, v.registered, v.detector))
         self._last_loop_at = len(self._ids) - 1
         return True
 

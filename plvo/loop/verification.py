@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 # The checks a verification can fail, in order (Verification.stage).
 TOO_FAR, MATCHES, PNP, PLANE, REGISTRATION, ODOMETRY = "too far", "matches", "pnp", "plane", "registration", "odometry"
 STAGES = (TOO_FAR, MATCHES, PNP, PLANE, REGISTRATION, ODOMETRY)
+# The detectors that propose candidates (Verification.detector), in words as reasons and logs name them.
+SOURCES = {"bow": "bag of words", "lidar": "lidar place"}
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,16 @@ class Verification:
     stage: str = ""
     place_inliers: int = 0
     alignment: MapAlignment | None = None
+
+    @property
+    def source(self) -> str:
+        """The detector in words, as reasons and logs name it."""
+        return SOURCES[self.detector]
+
+    @property
+    def support(self) -> int:
+        """The candidate's inliers: the place recognition's density-map inliers for a lidar place, else PnP/PnL's."""
+        return self.place_inliers if self.detector == "lidar" else self.n_point_inliers + self.n_line_inliers
 
     @property
     def for_lack_of_matches(self) -> bool:

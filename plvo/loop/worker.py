@@ -37,7 +37,7 @@ from plvo.heap import release_free_memory
 from plvo.lidar.deskew import Sweep
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
-from plvo.loop.verification import LoopKeyframe
+from plvo.loop.verification import SOURCES, LoopKeyframe
 from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, LoopResult, MetricsResult
 from plvo.tracking.corrections import GLOBAL_BA, LOOP, GlobalData, GraphEdge, MapCorrection, corrected_poses
 from plvo.tracking.keyframes import KeyframeInfo
@@ -206,10 +206,6 @@ def loop_keyframe(kf: KeyframeInfo, K: np.ndarray) -> LoopKeyframe:
     return LoopKeyframe.from_features(kf.kf_id, kf.T_world_cam, kf.features, priors, K, scan, kf.frame_index)
 
 
-def _source(detector: str) -> str:
-    return "lidar place" if detector == "lidar" else "bag of words"
-
-
 def _results(frame_index: int, outcome: LoopOutcome) -> list[object]:
     """One LoopResult a verified candidate (or for the best candidate of each detector when none was verified),
     and the counts. The reason begins with the detector that proposed the candidate; n_inliers is the PnP/PnL
@@ -219,20 +215,19 @@ def _results(frame_index: int, outcome: LoopOutcome) -> list[object]:
     score = {int(c): float(s) for c, s in zip(det.candidates, det.normalised)}
     out: list[object] = []
     for v in outcome.verifications:
-        n = v.place_inliers if v.detector == "lidar" else v.n_point_inliers + v.n_line_inliers
         out.append(LoopResult(
-            frame_index, int(v.query_id), int(v.cand_id), bool(v.accepted), score.get(int(v.cand_id), np.nan), int(n),
-            v.T_cand_query if v.accepted else None, f"{_source(v.detector)}: {v.reason}"))
+            frame_index, int(v.query_id), int(v.cand_id), bool(v.accepted), score.get(int(v.cand_id), np.nan),
+            int(v.support), v.T_cand_query if v.accepted else None, f"{v.source}: {v.reason}"))
     if not outcome.verifications:
         why = "; ".join(outcome.rejections)
         if len(det.candidates):
             out.append(LoopResult(frame_index, outcome.kf_id, int(det.candidates[0]), False,
-                                  float(det.normalised[0]), 0, None, f"{_source('bow')}: {why}"))
+                                  float(det.normalised[0]), 0, None, f"{SOURCES['bow']}: {why}"))
         for p in outcome.places:
             if p.candidates:
                 c = p.candidates[0]
                 out.append(LoopResult(frame_index, p.kf_id, c.kf_id, False, np.nan, c.inliers, None,
-                                      f"{_source('lidar')}: {why}"))
+                                      f"{SOURCES['lidar']}: {why}"))
     n_place = sum(len(p.candidates) for p in outcome.places)
     out.append(MetricsResult(frame_index, {"loop_candidates": float(len(det.candidates)),
                                            "loop_place_candidates": float(n_place),
