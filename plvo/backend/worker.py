@@ -192,7 +192,7 @@ class BackendCore:
             al = lmap.align(np.asarray(scan.cloud.points), init)
             T_prev_new = se3.inv(T_world_lidar[prev]) @ al.T_world_lidar
             reg = RegistrationResult(
-                T_dst_src=T_prev_new, T_camdst_camsrc=T_cv @ T_prev_new @ se3.inv(T_cv), e_hat=al.e_hat,
+                T_dst_src=T_prev_new, T_camdst_camsrc=se3.conjugate(T_cv, T_prev_new), e_hat=al.e_hat,
                 e_bar=al.e_bar, zeta=al.zeta, method="local_map", converged=al.converged, fitness=al.fitness,
                 time_s=al.time_s)
             if not al.converged:

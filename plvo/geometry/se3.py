@@ -99,6 +99,12 @@ def inv(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def conjugate(T_a_b: np.ndarray, M_b: np.ndarray) -> np.ndarray:
+    """A relative motion (4,4) between two poses of frame b -> the same motion seen by frame a, rigidly attached to
+    b (T_a_b maps b into a): T_a_b M_b T_a_b^-1, e.g. a lidar registration's T_dst_src as the cameras' motion."""
+    return T_a_b @ M_b @ inv(T_a_b)
+
+
 def inv_batch(T: np.ndarray) -> np.ndarray:
     """(N,4,4) rigid transforms -> (N,4,4) inverses."""
     T = np.asarray(T, float)

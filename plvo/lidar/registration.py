@@ -252,7 +252,7 @@ def align(scan_src: np.ndarray | PreparedScan, scan_dst: np.ndarray | PreparedSc
     if converged:
         e_hat, e_bar = _errors(src, dst, init, T, cfg.max_correspondence_m)
         zeta = zeta_from_errors(e_hat, e_bar, cfg.zeta_formula)
-    return RegistrationResult(T_dst_src=T, T_camdst_camsrc=T_cv @ T @ se3.inv(T_cv), e_hat=e_hat, e_bar=e_bar,
+    return RegistrationResult(T_dst_src=T, T_camdst_camsrc=se3.conjugate(T_cv, T), e_hat=e_hat, e_bar=e_bar,
                               zeta=zeta, method=method, converged=converged, fitness=fitness,
                               time_s=time.perf_counter() - t0)
 

@@ -376,8 +376,7 @@ class LoopCloser:
 
     def _camera(self, T_lidar: np.ndarray) -> np.ndarray:
         """A relative pose between lidar frames -> the same between the keyframes' cameras."""
-        T_cv = np.eye(4) if self.T_cam_velo is None else self.T_cam_velo
-        return T_cv @ T_lidar @ se3.inv(T_cv)
+        return T_lidar if self.T_cam_velo is None else se3.conjugate(self.T_cam_velo, T_lidar)
 
     def _drift_limit(self, query_id: int, match_id: int) -> tuple[float, float]:
         """(metres of odometry between the two keyframes, the drift they may have accumulated)."""

@@ -228,7 +228,7 @@ def verify_by_registration(query_id: int, cand_id: int, query_map: np.ndarray, c
 
     if not a.accepted:
         return done(False, np.eye(4), f"scan registration: {a.reason}", REGISTRATION)
-    T = np.round(T_cv @ a.T_dst_src @ se3.inv(T_cv), 9)
+    T = np.round(se3.conjugate(T_cv, a.T_dst_src), 9)
     why = against_odometry(T) if against_odometry is not None else ""
     if why:
         return done(False, np.eye(4), f"scan registration ({a.summary()}), but {why}", ODOMETRY)
