@@ -99,6 +99,10 @@ class BackendCore:
         self.T_cam_velo = np.asarray(calib.T_cam_velo, dtype=float)
         self.use_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
         self._last: tuple[int, PreparedScan] | None = None  # the previous keyframe's id and prepared scan
+        # {kf_id: (the window pose it was given, the pose this core answered)} for the last window's keyframes: the
+        # map applies an answer at a fixed frame, which can come after the next keyframe's window is read (a keyframe
+        # every frame while the tracker is lost), so a window may still hold poses this core has already corrected
+        self._answered: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         b = config.backend
         self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration) \
             if b.lidar_target == "local_map" else None
@@ -109,11 +113,12 @@ class BackendCore:
         w = job.window
         t = time.perf_counter()
         reg, edge = None, None
+        known = self._known_poses(w)
         if self.cfg.backend.registration and job.scan is not None:
             raw = job.scan if job.sweep is None else job.sweep.apply(job.scan)
             scan = prepare(raw, self.cfg.registration, f"frame {job.frame_index} scan")
             if self._local_map is not None:
-                reg, edge = self._register_to_map(w, job.kf_id, scan)
+                reg, edge = self._register_to_map(w, job.kf_id, scan, known)
                 seconds["registration"] = time.perf_counter() - t
             elif self._last is not None and self._last[0] in set(w.kf_ids.tolist()):
                 reg, edge = self._register(w, self._last, (job.kf_id, scan))
@@ -149,12 +154,43 @@ class BackendCore:
         seconds["backend"] = seconds.get("registration", 0.0) + seconds.get("scale_correction_ba", 0.0)
         step = BackendStep(job.kf_id, reg, scale, ba, seconds)
         correction = self._correction(w, after, edge)
+        self._remember(w, known, after, reg)
         if after is not None:
             points, lines = after.points[after.point_used], after.lines[after.line_used]
         else:
             points, lines = w.points, w.lines
         return BackendOutput(job.kf_id, job.frame_index, correction, step, points, lines, _metrics(step), stage_poses,
                              tuple(int(k) for k in w.kf_ids[-2:]))
+
+    def _known_poses(self, w: WindowData) -> np.ndarray:
+        """The window's poses (K,4,4) as this core knows them: a keyframe whose window pose is still the one it was
+        given last time takes the pose answered then (the map has not applied that answer yet); the keyframes after
+        it that were not answered (the newest) move with it, since the tracker placed them relative to it."""
+        T = np.array(w.T_world_cam, float)
+        carry = None  # identity: nothing is multiplied, so a window the map is up to date with stays bit for bit
+        for r, k in enumerate(w.kf_ids):
+            seen = self._answered.get(int(k))
+            if seen is None:
+                if carry is not None:
+                    T[r] = carry @ T[r]
+            elif np.array_equal(T[r], seen[0]) and not np.array_equal(seen[0], seen[1]):
+                T[r], carry = seen[1], seen[1] @ se3.inv(seen[0])
+            else:  # up to date: the answer applied (or a loop's correction since), or nothing to apply
+                carry = None
+        return T
+
+    def _remember(self, w: WindowData, known: np.ndarray, after: BAResult | None, reg: RegistrationResult | None
+                  ) -> None:
+        """What this job answered for its window's keyframes: the optimised poses, or without an optimisation the
+        newest keyframe's registered pose from the previous one's known pose (a window without landmarks, while the
+        tracker is lost)."""
+        if after is not None:
+            self._answered = {int(k): (w.T_world_cam[r].copy(), after.T_world_cam[r].copy())
+                              for r, k in enumerate(w.kf_ids)}
+            return
+        self._answered = {k: v for k, v in self._answered.items() if k in set(w.kf_ids.tolist())}
+        if reg is not None and reg.converged and reg.method == "local_map" and len(w.kf_ids) >= 2:
+            self._answered[int(w.kf_ids[-1])] = (w.T_world_cam[-1].copy(), known[-2] @ reg.T_camdst_camsrc)
 
     def _opt_kwargs(self) -> dict:
         return {"use_depth_priors": self.cfg.tracking.use_depth_priors, "use_lines": self.use_lines,
@@ -174,16 +210,17 @@ class BackendCore:
         return reg, GraphEdge(i, j, reg.T_camdst_camsrc, zeta, EDGE_ODOMETRY, residual_weight(reg.e_bar,
                                                                                                self.cfg.backend))
 
-    def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan
+    def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan, T_world_cam: np.ndarray
                          ) -> tuple[RegistrationResult | None, GraphEdge | None]:
         """Align the newest keyframe's scan to the local map of the recent keyframes' scans, placed at the window's
-        current poses, from the tracker's pose -> the result and the graph edge from the window's previous keyframe,
-        which the map holds at its pose (so the edge says where the map puts the new keyframe); then the scan joins
-        the map at the registered pose (at the tracker's when the alignment failed)."""
+        poses as this core knows them (T_world_cam, _known_poses), from the tracker's pose -> the result and the
+        graph edge from the window's previous keyframe, which the map holds at its pose (so the edge says where the
+        map puts the new keyframe); then the scan joins the map at the registered pose (at the tracker's when the
+        alignment failed)."""
         lmap = self._local_map
         assert lmap is not None
         T_cv = self.T_cam_velo
-        T_world_lidar = w.T_world_cam @ T_cv
+        T_world_lidar = T_world_cam @ T_cv
         lmap.place(w.kf_ids, T_world_lidar)
         init = T_world_lidar[-1]
         reg = edge = None
