@@ -83,3 +83,27 @@ def test_an_alignment_that_cannot_hold_says_why(town):
     np.testing.assert_array_equal(al.T_world_lidar, far)
     with pytest.raises(PlvoError, match="finite"):
         lmap.align(np.asarray(scans[1].cloud.points), np.full((4, 4), np.nan))
+
+
+def test_a_guess_the_registration_has_to_move_far_is_checked_against_the_prediction(town, monkeypatch):
+    poses, scans, cfg = town
+    lmap = LocalMap(8, 0.5, cfg)
+    for k in range(8):
+        lmap.add(k, np.asarray(scans[k].fine.points), poses[k])
+    truth, src = poses[8], np.asarray(scans[8].cloud.points)
+    starts: list[np.ndarray] = []
+    align = LocalMap.align
+    monkeypatch.setattr(LocalMap, "align", lambda self, s, g: starts.append(g) or align(self, s, g))
+    prediction = truth @ se3.exp(np.array([0.1, 0.0, 0.05, 0.0, 0.0, np.radians(0.3)]))
+    # a good guess: its alignment moves it 0.05 deg, the prediction is not tried
+    al = lmap.align_best(src, [truth @ se3.exp(np.array([0.05, 0.0, 0.0, 0.0, 0.0, np.radians(0.05)])), prediction])
+    assert len(starts) == 1 and al.converged and _error(al.T_world_lidar, truth)[1] < 0.05
+    # a guess turned 40 deg (the tracker fooled): it cannot be aligned from there; from the prediction it can
+    wrong = truth @ se3.exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(40.0)]))
+    alone = align(lmap, src, wrong)
+    assert not alone.converged or _error(alone.T_world_lidar, truth)[1] > 1.0
+    starts.clear()
+    al = lmap.align_best(src, [wrong, prediction])
+    assert len(starts) == 2 and al.converged
+    t_err, r_err = _error(al.T_world_lidar, truth)
+    assert t_err < 0.03 and r_err < 0.05, (t_err, r_err)

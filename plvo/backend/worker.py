@@ -103,6 +103,7 @@ class BackendCore:
         # map applies an answer at a fixed frame, which can come after the next keyframe's window is read (a keyframe
         # every frame while the tracker is lost), so a window may still hold poses this core has already corrected
         self._answered: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._frame_of: dict[int, int] = {}  # the window keyframes' frame indices (for the lidar's own prediction)
         b = config.backend
         self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration) \
             if b.lidar_target == "local_map" else None
@@ -113,6 +114,8 @@ class BackendCore:
         w = job.window
         t = time.perf_counter()
         reg, edge = None, None
+        self._frame_of = {k: f for k, f in self._frame_of.items() if k in set(w.kf_ids.tolist())}
+        self._frame_of[int(job.kf_id)] = int(job.frame_index)
         known = self._known_poses(w)
         if self.cfg.backend.registration and job.scan is not None:
             raw = job.scan if job.sweep is None else job.sweep.apply(job.scan)
@@ -226,7 +229,7 @@ class BackendCore:
         reg = edge = None
         prev = len(w.kf_ids) - 2
         if len(lmap) and prev >= 0 and int(w.kf_ids[prev]) in set(lmap.kf_ids):
-            al = lmap.align(np.asarray(scan.cloud.points), init)
+            al = lmap.align_best(np.asarray(scan.cloud.points), [init, *self._constant_velocity(w, T_world_lidar)])
             T_prev_new = se3.inv(T_world_lidar[prev]) @ al.T_world_lidar
             reg = RegistrationResult(
                 T_dst_src=T_prev_new, T_camdst_camsrc=se3.conjugate(T_cv, T_prev_new), e_hat=al.e_hat,
@@ -242,6 +245,17 @@ class BackendCore:
                 init = al.T_world_lidar
         lmap.add(kf_id, np.asarray(scan.fine.points), init)
         return reg, edge
+
+    def _constant_velocity(self, w: WindowData, T_world_lidar: np.ndarray) -> list[np.ndarray]:
+        """The newest keyframe's lidar pose as the two keyframes before it predict it (their motion a frame,
+        continued over the frames since) -> [T_world_lidar], or [] without three window keyframes of known frames."""
+        if len(w.kf_ids) < 3:
+            return []
+        f = [self._frame_of.get(int(k), -1) for k in w.kf_ids[-3:]]
+        if not 0 <= f[0] < f[1] < f[2]:
+            return []
+        step = se3.log(se3.inv(T_world_lidar[-3]) @ T_world_lidar[-2]) / (f[1] - f[0])
+        return [T_world_lidar[-2] @ se3.exp(step * (f[2] - f[1]))]
 
     def _correction(self, w: WindowData, res: BAResult | None, edge: GraphEdge | None) -> MapCorrection | None:
         edges = (edge,) if edge is not None else ()
