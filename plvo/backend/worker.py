@@ -114,7 +114,8 @@ class BackendCore:
         w = job.window
         t = time.perf_counter()
         reg, edge = None, None
-        self._frame_of = {k: f for k, f in self._frame_of.items() if k in set(w.kf_ids.tolist())}
+        in_window = set(w.kf_ids.tolist())
+        self._frame_of = {k: f for k, f in self._frame_of.items() if k in in_window}
         self._frame_of[int(job.kf_id)] = int(job.frame_index)
         known = self._known_poses(w)
         if self.cfg.backend.registration and job.scan is not None:
@@ -123,7 +124,7 @@ class BackendCore:
             if self._local_map is not None:
                 reg, edge = self._register_to_map(w, job.kf_id, scan, known)
                 seconds["registration"] = time.perf_counter() - t
-            elif self._last is not None and self._last[0] in set(w.kf_ids.tolist()):
+            elif self._last is not None and self._last[0] in in_window:
                 reg, edge = self._register(w, self._last, (job.kf_id, scan))
                 seconds["registration"] = time.perf_counter() - t
             self._last = (job.kf_id, scan)
@@ -157,7 +158,7 @@ class BackendCore:
         seconds["backend"] = seconds.get("registration", 0.0) + seconds.get("scale_correction_ba", 0.0)
         step = BackendStep(job.kf_id, reg, scale, ba, seconds)
         correction = self._correction(w, after, edge)
-        self._remember(w, known, after, reg)
+        self._remember(w, in_window, known, after, reg)
         if after is not None:
             points, lines = after.points[after.point_used], after.lines[after.line_used]
         else:
@@ -182,8 +183,8 @@ class BackendCore:
                 carry = None
         return T
 
-    def _remember(self, w: WindowData, known: np.ndarray, after: BAResult | None, reg: RegistrationResult | None
-                  ) -> None:
+    def _remember(self, w: WindowData, in_window: set[int], known: np.ndarray, after: BAResult | None,
+                  reg: RegistrationResult | None) -> None:
         """What this job answered for its window's keyframes: the optimised poses, or without an optimisation the
         newest keyframe's registered pose from the previous one's known pose (a window without landmarks, while the
         tracker is lost)."""
@@ -191,7 +192,7 @@ class BackendCore:
             self._answered = {int(k): (w.T_world_cam[r].copy(), after.T_world_cam[r].copy())
                               for r, k in enumerate(w.kf_ids)}
             return
-        self._answered = {k: v for k, v in self._answered.items() if k in set(w.kf_ids.tolist())}
+        self._answered = {k: v for k, v in self._answered.items() if k in in_window}
         if reg is not None and reg.converged and reg.method == "local_map" and len(w.kf_ids) >= 2:
             self._answered[int(w.kf_ids[-1])] = (w.T_world_cam[-1].copy(), known[-2] @ reg.T_camdst_camsrc)
 
@@ -216,10 +217,11 @@ class BackendCore:
     def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan, T_world_cam: np.ndarray
                          ) -> tuple[RegistrationResult | None, GraphEdge | None]:
         """Align the newest keyframe's scan to the local map of the recent keyframes' scans, placed at the window's
-        poses as this core knows them (T_world_cam, _known_poses), from the tracker's pose -> the result and the
-        graph edge from the window's previous keyframe, which the map holds at its pose (so the edge says where the
-        map puts the new keyframe); then the scan joins the map at the registered pose (at the tracker's when the
-        alignment failed)."""
+        poses as this core knows them (T_world_cam, _known_poses), from the tracker's pose (and from the lidar's
+        constant-velocity prediction when that alignment moved it suspiciously far, LocalMap.align_best) -> the
+        result and the graph edge from the window's previous keyframe, which the map holds at its pose (so the edge
+        says where the map puts the new keyframe); then the scan joins the map at the registered pose (at the
+        tracker's when the alignment failed)."""
         lmap = self._local_map
         assert lmap is not None
         T_cv = self.T_cam_velo
