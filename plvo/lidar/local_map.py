@@ -143,7 +143,9 @@ class LocalMap:
             # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign)
             pc = pc.voxel_down_sample(self.voxel_m)
             pc.normalize_normals()
-            self._built = (pc, cKDTree(np.asarray(pc.points)))
+            # sliding-midpoint splits without node shrinking: a third of the balanced tree's build time, the same
+            # nearest neighbours (exact either way), and the tree is rebuilt for every alignment
+            self._built = (pc, cKDTree(np.asarray(pc.points), balanced_tree=False, compact_nodes=False))
         return self._built
 
     def align(self, source: np.ndarray, T_world_lidar_init: np.ndarray) -> MapAlignment:
