@@ -143,7 +143,7 @@ class LocalMap:
             # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign)
             pc = pc.voxel_down_sample(self.voxel_m)
             pc.normalize_normals()
-            # sliding-midpoint splits without node shrinking: a third of the balanced tree's build time, the same
+            # sliding-midpoint splits without node shrinking: under half the balanced tree's build time, the same
             # nearest neighbours (exact either way), and the tree is rebuilt for every alignment
             self._built = (pc, cKDTree(np.asarray(pc.points), balanced_tree=False, compact_nodes=False))
         return self._built
