@@ -144,7 +144,7 @@ class LocalMap:
             pc = pc.voxel_down_sample(self.voxel_m)
             pc.normalize_normals()
             # sliding-midpoint splits without node shrinking: under half the balanced tree's build time, the same
-            # nearest neighbours (exact either way), and the tree is rebuilt for every alignment
+            # nearest neighbours (exact either way); the tree is rebuilt at every placement, once a keyframe
             self._built = (pc, cKDTree(np.asarray(pc.points), balanced_tree=False, compact_nodes=False))
         return self._built
 
