@@ -15,6 +15,32 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 KITTI_ROOT = REPO.parent / "shared" / "data" / "kitti"
 
+# What the suite writes to its temporary folder (synthetic towns, twins, recordings) at its peak, kept until the
+# session ends: a full disk otherwise shows as OSErrors in whichever fixture happens to write next.
+SUITE_TMP_MB = 1500
+
+
+def _tmp_space() -> tuple[Path, int]:
+    import shutil
+    import tempfile
+
+    tmp = Path(os.environ.get("PYTEST_DEBUG_TEMPROOT") or tempfile.gettempdir())
+    return tmp, shutil.disk_usage(tmp).free // 2**20
+
+
+def pytest_report_header(config) -> str:
+    tmp, free_mb = _tmp_space()
+    return f"temporary files: {tmp}, {free_mb} MB free (the suite writes about {SUITE_TMP_MB} MB)"
+
+
+def pytest_sessionstart(session) -> None:
+    tmp, free_mb = _tmp_space()
+    if free_mb < SUITE_TMP_MB:  # said even under -q, before the first failure it explains
+        import sys
+
+        sys.stderr.write(f"WARNING: {tmp} has {free_mb} MB free and the suite writes about {SUITE_TMP_MB} MB: "
+                         "expect OSErrors (No space left on device) from the fixtures that write files\n")
+
 
 @pytest.fixture(scope="session")
 def kitti_root() -> Path:
