@@ -8,6 +8,7 @@ due; everything they produce for the recorders goes through `emit`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -111,7 +112,12 @@ class BackendStage:
         n = max(2, self._config.backend.window_keyframes)
         ids = np.arange(max(0, kf.kf_id - n + 1), kf.kf_id + 1)
         scan = kf.registration_scan if self._config.backend.registration else None
-        return BackendJob(kf.kf_id, kf.frame_index, scan, self._map.window_data(ids, self._uses_lines), kf.sweep)
+        return BackendJob(kf.kf_id, kf.frame_index, scan, self._map.window_data(ids, self._uses_lines))
+
+    @staticmethod
+    def with_scan(job: Any, scan: np.ndarray) -> Any:
+        """The job with its registration scan replaced (by the deskewed one); a job without a scan as it is."""
+        return job if job.scan is None else dataclasses.replace(job, scan=scan)
 
     def apply(self, out: Any) -> None:
         if out.correction is not None:
@@ -151,7 +157,14 @@ class LoopStage:
         from plvo.loop.worker import LoopJob, loop_keyframe
 
         return LoopJob(kf.kf_id, kf.frame_index, loop_keyframe(kf, self._K), self._map.poses(),
-                       self._scheduler.loop_corrections_applied, kf.sweep)
+                       self._scheduler.loop_corrections_applied)
+
+    @staticmethod
+    def with_scan(job: Any, scan: np.ndarray) -> Any:
+        """The job with its keyframe's scan replaced (by the deskewed one); a keyframe without a scan as it is."""
+        if job.keyframe.scan is None:
+            return job
+        return dataclasses.replace(job, keyframe=dataclasses.replace(job.keyframe, scan=scan))
 
     def apply(self, out: Any) -> None:
         t0 = time.perf_counter()

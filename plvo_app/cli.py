@@ -18,15 +18,18 @@ import traceback
 import warnings
 from collections.abc import Sequence
 
-from plvo.errors import PlvoError
-from plvo.heap import keep_freed_memory
-from plvo_app import cmd_viz
-from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt
-
-# One OpenBLAS thread unless the user chose otherwise: set here, before any subcommand imports numpy. OpenBLAS's
-# extra thread spins on 2 cores that the tracker, the line thread and the back end already share: on KITTI 04
-# (51 frames) the whole system used ~2.5x the CPU time with the default threads and ran 1.5-3.5x slower.
+# One OpenBLAS thread unless the user chose otherwise: set before anything imports numpy (cmd_viz below does), as
+# OpenBLAS reads it once, when it loads. OpenBLAS's extra thread spins on 2 cores that the tracker, the line thread
+# and the back end already share: on KITTI 04 (51 frames) the whole system used ~2.5x the CPU time with the default
+# threads and ran 1.5-3.5x slower; set after the import, the tracking process kept two threads (the workers, which
+# start later, one), whose second one spent 9 s spinning in a 271-frame twin run once the tracking thread deskewed.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from plvo.errors import PlvoError  # noqa: E402
+from plvo.heap import keep_freed_memory  # noqa: E402
+from plvo_app import cmd_viz  # noqa: E402
+from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt  # noqa: E402
+
 # The tracking process reads, decodes and ships a frame's arrays every frame: keep freed memory for the next one
 # (plvo.heap; the worker processes do the same).
 keep_freed_memory()

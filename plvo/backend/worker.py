@@ -37,7 +37,6 @@ from plvo.backend.problem import BAProblem, BAResult
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
-from plvo.lidar.deskew import Sweep
 from plvo.lidar.local_map import LocalMap
 from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
 from plvo.results import EDGE_ODOMETRY
@@ -49,14 +48,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class BackendJob:
-    """One keyframe for the back end: its id and frame, its registration scan (lidar frame, None without
-    registration) and the window of the map ending at it (read when the keyframe was made)."""
+    """One keyframe for the back end: its id and frame, its registration scan (lidar frame, deskewed where the
+    data needs it (plvo.system), None without registration) and the window of the map ending at it (read when the
+    keyframe was made)."""
 
     kf_id: int
     frame_index: int
     scan: np.ndarray | None
     window: WindowData
-    sweep: Sweep | None = None  # how the scan is deskewed (None: it is registered as it is)
 
 
 @dataclass(frozen=True)
@@ -119,8 +118,7 @@ class BackendCore:
         self._frame_of[int(job.kf_id)] = int(job.frame_index)
         known = self._known_poses(w)
         if self.cfg.backend.registration and job.scan is not None:
-            raw = job.scan if job.sweep is None else job.sweep.apply(job.scan)
-            scan = prepare(raw, self.cfg.registration, f"frame {job.frame_index} scan")
+            scan = prepare(job.scan, self.cfg.registration, f"frame {job.frame_index} scan")
             if self._local_map is not None:
                 reg, edge = self._register_to_map(w, job.kf_id, scan, known)
                 seconds["registration"] = time.perf_counter() - t

@@ -17,7 +17,8 @@ The returns' times are the data's own where it has them (ROS PointCloud2 `t`/`ti
 a lidar turning clockwise seen from above once a frame, facing forward (azimuth 0) at the frame's time, as KITTI's
 HDL-64E is triggered and as the KITTI twins' sweep is simulated (plvo.data.synth.twin.lidars).
 
-numpy only: the keyframe prepares its registration scan once, in the tracking thread, for both workers.
+numpy only: the tracking thread deskews a keyframe's registration scan once, for both workers that register it
+(plvo.system), when the motion after the frame is known.
 """
 
 from __future__ import annotations
@@ -77,8 +78,18 @@ def deskew(scan: np.ndarray, times: np.ndarray, twist: np.ndarray) -> np.ndarray
         # the SE(3) left Jacobian's translation V(t phi) t rho = t rho + (1 - cos a)/theta K rho
         # + (a - sin a)/theta K^2 rho
         Kr, KKr = K @ rho, K @ K @ rho
-        moved = (p + s[:, None] * (p @ K.T) + (1.0 - c)[:, None] * (p @ (K @ K).T)
-                 + np.outer(t, rho) + np.outer((1.0 - c) / theta, Kr) + np.outer((a - s) / theta, KKr))
+        # summed in place, term by term in the order written above (the same roundings as one expression, without
+        # an (N,3) temporary for every term)
+        moved = p @ K.T
+        moved *= s[:, None]
+        moved += p
+        term = p @ (K @ K).T
+        one_minus_c = 1.0 - c
+        term *= one_minus_c[:, None]
+        moved += term
+        for weight, vector in ((t, rho), (one_minus_c / theta, Kr), ((a - s) / theta, KKr)):
+            np.multiply(weight[:, None], vector, out=term)
+            moved += term
     out[:, :3] = moved.astype(out.dtype, copy=False)
     return out
 

@@ -34,7 +34,6 @@ import numpy as np
 from plvo.backend.problem import BAResult
 from plvo.config import SystemConfig
 from plvo.heap import release_free_memory
-from plvo.lidar.deskew import Sweep
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import SOURCES, LoopKeyframe
@@ -49,15 +48,15 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopJob:
-    """One keyframe for the loop closer: the keyframe, every keyframe pose (K,4,4) by id as the map had them, how
-    many of the loop closer's corrections the map had applied then, and how its scan is deskewed (None: as it is)."""
+    """One keyframe for the loop closer: the keyframe (its scan deskewed where the data needs it, plvo.system),
+    every keyframe pose (K,4,4) by id as the map had them, how many of the loop closer's corrections the map had
+    applied then."""
 
     kf_id: int
     frame_index: int
     keyframe: LoopKeyframe
     T_world_cam: np.ndarray
     corrections_applied: int
-    sweep: Sweep | None = None
 
 
 @dataclass(frozen=True)
@@ -121,8 +120,6 @@ class LoopCore:
         if job.kf_id:
             self.closer.update_poses(np.arange(job.kf_id), poses[: job.kf_id])
         lk = dataclasses.replace(job.keyframe, T_world_cam=poses[job.kf_id])
-        if job.sweep is not None and lk.scan is not None:  # in the worker: off the tracking thread
-            lk = dataclasses.replace(lk, scan=job.sweep.apply(lk.scan))
         outcome = self.closer.on_keyframe(lk)
         correction = None
         if outcome.accepted is not None and outcome.poses_before is not None and outcome.poses_after is not None:
