@@ -250,11 +250,20 @@ class System:
                 loop_job = self._loop.job(kf)
         if backend_job is not None or loop_job is not None:
             self._pending = (kf, backend_job, loop_job)
+            if kf.sweep is None and self._results_lag():
+                # nothing to deskew, so nothing to wait a frame for: the workers start a frame earlier, and their
+                # results are applied at the same frames as ever (inline, lag 0, they would be applied at once, before
+                # the next frame is tracked instead of after: there the job still waits)
+                self._submit_pending(None, None)
         every = self.config.tracking.drop_unreachable_every
         if every and kf.kf_id % every == 0:
             with self._clock.stage("map_drop"):
                 drop_unreachable(self._frontend.map, kf.kf_id, frame.index, self.config)
         return keyframe
+
+    def _results_lag(self) -> bool:
+        """Whether every worker's results are applied at a later frame than their job's submission (not inline)."""
+        return all(stage.channel.lag > 0 for stage in (self._backend, self._loop) if stage is not None)
 
     def _submit_pending(self, frame: Frame | None, T_world_cam: np.ndarray | None) -> None:
         """Submit the last keyframe's back-end and loop jobs, their scan deskewed with the motion to `frame`
