@@ -267,7 +267,8 @@ class System:
 
     def _submit_pending(self, frame: Frame | None, T_world_cam: np.ndarray | None) -> None:
         """Submit the last keyframe's back-end and loop jobs, their scan deskewed with the motion to `frame`
-        (tracked at T_world_cam; None at the end of the run), due as if submitted at the keyframe's own frame."""
+        (tracked at T_world_cam; None at the end of the run, or at the keyframe itself when its scan is not
+        deskewed), due as if submitted at the keyframe's own frame."""
         assert self._pending is not None and self._frontend is not None
         kf, backend_job, loop_job = self._pending
         self._pending = None
@@ -284,8 +285,7 @@ class System:
             if stage is None or job is None:
                 continue
             with self._clock.stage(name):
-                self._scheduler.submit(stage.channel, job if scan is None else stage.with_scan(job, scan),
-                                       kf.frame_index)
+                self._scheduler.submit(stage.channel, job if scan is None else job.with_scan(scan), kf.frame_index)
             self._scheduler.settle(stage.channel)
 
     def finish(self) -> None:

@@ -8,7 +8,6 @@ due; everything they produce for the recorders goes through `emit`.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -114,11 +113,6 @@ class BackendStage:
         scan = kf.registration_scan if self._config.backend.registration else None
         return BackendJob(kf.kf_id, kf.frame_index, scan, self._map.window_data(ids, self._uses_lines))
 
-    @staticmethod
-    def with_scan(job: Any, scan: np.ndarray) -> Any:
-        """The job with its registration scan replaced (by the deskewed one); a job without a scan as it is."""
-        return job if job.scan is None else dataclasses.replace(job, scan=scan)
-
     def apply(self, out: Any) -> None:
         if out.correction is not None:
             self._map.apply(out.correction)
@@ -158,13 +152,6 @@ class LoopStage:
 
         return LoopJob(kf.kf_id, kf.frame_index, loop_keyframe(kf, self._K), self._map.poses(),
                        self._scheduler.loop_corrections_applied)
-
-    @staticmethod
-    def with_scan(job: Any, scan: np.ndarray) -> Any:
-        """The job with its keyframe's scan replaced (by the deskewed one); a keyframe without a scan as it is."""
-        if job.keyframe.scan is None:
-            return job
-        return dataclasses.replace(job, keyframe=dataclasses.replace(job.keyframe, scan=scan))
 
     def apply(self, out: Any) -> None:
         t0 = time.perf_counter()

@@ -57,6 +57,10 @@ class BackendJob:
     scan: np.ndarray | None
     window: WindowData
 
+    def with_scan(self, scan: np.ndarray) -> BackendJob:
+        """The job with its registration scan replaced (by the deskewed one); a job without a scan as it is."""
+        return self if self.scan is None else dataclasses.replace(self, scan=scan)
+
 
 @dataclass(frozen=True)
 class BackendStep:

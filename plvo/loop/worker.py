@@ -58,6 +58,12 @@ class LoopJob:
     T_world_cam: np.ndarray
     corrections_applied: int
 
+    def with_scan(self, scan: np.ndarray) -> LoopJob:
+        """The job with its keyframe's scan replaced (by the deskewed one); a keyframe without a scan as it is."""
+        if self.keyframe.scan is None:
+            return self
+        return dataclasses.replace(self, keyframe=dataclasses.replace(self.keyframe, scan=scan))
+
 
 @dataclass(frozen=True)
 class GlobalBAJob:
