@@ -7,6 +7,9 @@ import os
 # As the CLI does (plvo_app/cli.py): multi-threaded BLAS on small matrices costs 2-3x the CPU on 2 cores.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -21,9 +24,6 @@ SUITE_TMP_MB = 1500
 
 
 def _tmp_space() -> tuple[Path, int]:
-    import shutil
-    import tempfile
-
     tmp = Path(os.environ.get("PYTEST_DEBUG_TEMPROOT") or tempfile.gettempdir())
     return tmp, shutil.disk_usage(tmp).free // 2**20
 
@@ -36,8 +36,6 @@ def pytest_report_header(config) -> str:
 def pytest_sessionstart(session) -> None:
     tmp, free_mb = _tmp_space()
     if free_mb < SUITE_TMP_MB:  # said even under -q, before the first failure it explains
-        import sys
-
         sys.stderr.write(f"WARNING: {tmp} has {free_mb} MB free and the suite writes about {SUITE_TMP_MB} MB: "
                          "expect OSErrors (No space left on device) from the fixtures that write files\n")
 
