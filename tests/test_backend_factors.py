@@ -10,6 +10,7 @@ import numpy as np
 from plvo.backend import bundle_adjustment as ba
 from plvo.backend import factors
 from plvo.backend.problem import make_synthetic_problem
+from plvo.backend.relpose import relpose_block
 from plvo.config import BackendConfig
 from plvo.geometry import se3
 from plvo.geometry.lines import orth_update, plucker_from_points, plucker_to_orth
@@ -83,10 +84,10 @@ def test_relpose_block_jacobians():
     Ti, Tj = _poses(rng, n), _poses(rng, n)
     meas = np.stack([Ti[a] @ se3.inv(Tj[a]) @ se3.exp(rng.normal(0, 0.03, 6)) for a in range(n)])
     zeta = np.array([1.0, 0.5, 2.0, 1e-3])
-    r, Ji, Jj = ba.relpose_block(Ti, Tj, meas, zeta)
+    r, Ji, Jj = relpose_block(Ti, Tj, meas, zeta)
     # Jr^-1(r) ~ I + ad(r)/2 is exact to second order in |r| ~ 0.05: relative error ~1e-3.
-    _close(Ji, _num_pose(lambda T: ba.relpose_block(T, Tj, meas, zeta)[0], Ti, r.shape), rel=2e-3)
-    _close(Jj, _num_pose(lambda T: ba.relpose_block(Ti, T, meas, zeta)[0], Tj, r.shape), rel=2e-3)
+    _close(Ji, _num_pose(lambda T: relpose_block(T, Tj, meas, zeta)[0], Ti, r.shape), rel=2e-3)
+    _close(Jj, _num_pose(lambda T: relpose_block(Ti, T, meas, zeta)[0], Tj, r.shape), rel=2e-3)
 
 
 def test_gtsam_line_factor_jacobians_match_numeric():
@@ -167,16 +168,18 @@ def test_relpose_batch_helpers_match_scalar_se3_and_weights_scale_rows():
     Ti, Tj = T[:2], T[2:]
     meas = np.stack([se3.exp(rng.normal(0, 0.1, 6)) for _ in range(2)])
     w = np.r_[4.0, 4.0, 4.0, 100.0, 100.0, 100.0]
-    r1, Ji1, Jj1 = ba.relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]))
-    r2, Ji2, Jj2 = ba.relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]), w)
+    r1, Ji1, Jj1 = relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]))
+    r2, Ji2, Jj2 = relpose_block(Ti, Tj, meas, np.array([1.0, 0.5]), w)
     np.testing.assert_allclose(r2, r1 * np.sqrt(w), rtol=1e-12)
     np.testing.assert_allclose(Ji2, Ji1 * np.sqrt(w)[:, None], rtol=1e-12)
     np.testing.assert_allclose(Jj2, Jj1 * np.sqrt(w)[:, None], rtol=1e-12)
 
 
-def test_trial_steps_cost_without_jacobians_equals_the_full_evaluation():
-    """The LM prices its trial steps without Jacobians: the residuals (every block, with priors on half the
-    observations and relative-pose factors) and the cost must be the full evaluation's to the last bit."""
+def test_trial_steps_are_priced_without_jacobians_which_come_later_the_same():
+    """The LM prices a trial step from its residuals alone and computes the Jacobians only of a step it accepts,
+    from what the residuals were computed from: residuals and Jacobians of every block (priors on half the line
+    observations, relative-pose factors) must be those of the blocks computed at once, to the last bit; and the
+    normal equations assembled with the row plan of an earlier state must be those assembled without one."""
     truth = make_synthetic_problem(n_kf=5, n_points=80, n_lines=20, seed=7, prior_fraction=0.5, pixel_noise=0.5)
     rng = np.random.default_rng(7)
     T = truth.T_world_cam.copy()
@@ -184,17 +187,39 @@ def test_trial_steps_cost_without_jacobians_equals_the_full_evaluation():
         T[k] = T[k] @ se3.exp(rng.normal(0, 0.02, 6))
     p = dataclasses.replace(truth, T_world_cam=T, points=truth.points + rng.normal(0, 0.1, truth.points.shape),
                             rel_zeta=np.full(4, 0.6))
-    cfg = BackendConfig()
+    cfg, baseline = BackendConfig(), factors.DEFAULT_STEREO_BASELINE_M
     pt_ok, ln_ok = factors.usable_landmarks(p)
     lay, sel = ba._Layout(p, pt_ok, ln_ok), ba._select(p, pt_ok, ln_ok, True)
-    sel["origin"] = np.zeros((p.n_lines, 3))
-    U, W = plucker_to_orth(plucker_from_points(p.lines[:, 0], p.lines[:, 1]))
+    sel["origin"] = rng.normal(0, 1.0, (p.n_lines, 3))
+    U, W = plucker_to_orth(plucker_from_points(p.lines[:, 0] - sel["origin"], p.lines[:, 1] - sel["origin"]))
     T_cw = np.stack([se3.inv(t) for t in p.T_world_cam])
-    args = (p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M)
-    full, cheap = ba._evaluate(*args), ba._evaluate(*args, jacobians=False)
-    assert [len(r) for r, _, _ in full.items] == [len(r) for r, _, _ in cheap.items] and len(full.items) == 3
+    blocks = ba._evaluate(p, T_cw, p.points, U, W, lay, sel, cfg, baseline)
+    assert len(blocks.items) == 3 and not blocks._terms  # residuals only, so far
     assert np.isfinite(p.ln_prior).any() and ln_ok.sum() >= 5
-    for (r_full, terms, k_full), (r_cheap, none, k_cheap) in zip(full.items, cheap.items):
-        np.testing.assert_array_equal(r_cheap, r_full)
-        assert k_cheap == k_full and all(J is None for _, J in none) and all(J is not None for _, J in terms)
-    assert cheap.cost() == full.cost() > 1.0
+    o = sel["pt"]
+    at_once = [ba.point_block(p.K, T_cw[p.pt_kf[o]], p.points[p.pt_idx[o]], p.pt_uv[o], sel["depth"], baseline,
+                              cfg.sigma_point_px)]
+    o = sel["ln"]
+    j = p.ln_idx[o]
+    T_cl = T_cw[p.ln_kf[o]].copy()
+    T_cl[:, :3, 3] += np.einsum("nij,nj->ni", T_cl[:, :3, :3], sel["origin"][j])
+    at_once.append(ba.line_block(p.K, T_cl, U[j], W[j], p.ln_seg[o], sel["prior"], cfg.sigma_line))
+    o = sel["rel"]
+    at_once.append(relpose_block(T_cw[p.rel_ij[o, 0]], T_cw[p.rel_ij[o, 1]], p.rel_T[o], p.rel_zeta[o],
+                                 p.rel_weight))
+    for b, ((r, _, _), (r1, Ja, Jb)) in enumerate(zip(blocks.items, at_once)):
+        np.testing.assert_array_equal(r, r1)
+        (_, Ja_later), (_, Jb_later) = blocks.terms(b)
+        np.testing.assert_array_equal(Ja_later, Ja)
+        np.testing.assert_array_equal(Jb_later, Jb)
+    assert blocks.terms(0) is blocks.terms(0)  # computed once
+    plan: dict = {}
+    blocks.normal_equations(lay, plan)
+    assert plan
+    moved = (T_cw.copy(), p.points + rng.normal(0, 0.05, p.points.shape), U, W)
+    moved[0][1:] = np.stack([se3.exp(rng.normal(0, 0.01, 6)) @ t for t in T_cw[1:]])
+    planned = ba._evaluate(p, *moved, lay, sel, cfg, baseline).normal_equations(lay, plan)
+    fresh = ba._evaluate(p, *moved, lay, sel, cfg, baseline).normal_equations(lay)
+    for part in ("Hpp", "Hpl", "Hpt", "Hln", "g"):
+        np.testing.assert_array_equal(getattr(planned, part), getattr(fresh, part))
+    assert np.abs(fresh.Hpl).max() > 0 and np.abs(fresh.Hln).max() > 0

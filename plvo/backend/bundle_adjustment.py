@@ -19,16 +19,17 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from plvo.backend import factors
 from plvo.backend.factors import DEFAULT_STEREO_BASELINE_M, usable_landmarks
 from plvo.backend.problem import BAProblem, BAResult
-from plvo.backend.relpose import relpose_block
+from plvo.backend.relpose import relpose_residuals
 from plvo.config import BackendConfig
 from plvo.geometry import se3
-from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch
+from plvo.geometry.line_jacobians import line_residuals_batch
 from plvo.geometry.lines import hat_batch, orth_to_plucker, orth_update, plucker_from_points, plucker_to_orth
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,11 @@ log = logging.getLogger(__name__)
 # --- vectorised residual blocks for the sparse Levenberg-Marquardt in bundle_adjustment.py -------------------
 # Poses there are perturbed as in plvo.geometry.line_jacobians: T_cam_world <- exp(xi) T_cam_world, xi=(rho,phi).
 # Each block returns whitened residuals r (N,d) and Jacobians (N,d,6) w.r.t. the pose and (N,d,k) w.r.t. the
-# landmark; robust weighting is applied by the solver per row of N.
+# landmark; robust weighting is applied by the solver per row of N. The *_residuals forms give r and a function
+# that computes the Jacobians later from what r was computed from: the LM's trial steps need the cost alone, and
+# the Jacobians only of a step that is accepted.
+
+_Later = Callable[[], tuple[np.ndarray, np.ndarray]]
 
 
 def point_block(
@@ -50,6 +55,15 @@ def point_block(
     where a depth prior exists and zero (with zero Jacobian) otherwise, so mono and stereo share one array.
     jacobians=False: (r, None, None), r computed by the same operations (the LM's trial steps need the cost only).
     """
+    r, later = point_residuals(K, T_cw, X_w, uv, depth, baseline, sigma)
+    return (r, *later()) if jacobians else (r, None, None)
+
+
+def point_residuals(
+    K: np.ndarray, T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray, depth: np.ndarray, baseline: float,
+    sigma: float,
+) -> tuple[np.ndarray, _Later]:
+    """point_block's r, and the function that gives its (J_pose, J_point)."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R, t = T_cw[:, :3, :3], T_cw[:, :3, 3]
     Xc = np.einsum("nij,nj->ni", R, X_w) + t
@@ -60,15 +74,17 @@ def point_block(
     r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1],
                   fx * (x - baseline) * zi + cx - u_r_meas], 1)
     r[~stereo, 2] = 0.0
-    if not jacobians:
-        return r / sigma, None, None
-    dproj = np.zeros((len(z), 3, 3))  # d(uL, v, uR)/d Xc
-    dproj[:, 0, 0], dproj[:, 0, 2] = fx * zi, -fx * x * zi**2
-    dproj[:, 1, 1], dproj[:, 1, 2] = fy * zi, -fy * y * zi**2
-    dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
-    dproj[~stereo, 2] = 0.0
-    dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
-    return r / sigma, dproj @ dXc_dxi / sigma, dproj @ R / sigma
+
+    def jacobians() -> tuple[np.ndarray, np.ndarray]:
+        dproj = np.zeros((len(z), 3, 3))  # d(uL, v, uR)/d Xc
+        dproj[:, 0, 0], dproj[:, 0, 2] = fx * zi, -fx * x * zi**2
+        dproj[:, 1, 1], dproj[:, 1, 2] = fy * zi, -fy * y * zi**2
+        dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
+        dproj[~stereo, 2] = 0.0
+        dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
+        return dproj @ dXc_dxi / sigma, dproj @ R / sigma
+
+    return r / sigma, jacobians
 
 
 def line_block(
@@ -78,21 +94,31 @@ def line_block(
     """(3,3), (N,4,4), (N,3,3),(N,2,2) world lines, (N,4) px, (N,2,3) priors in camera or NaN -> r (N,3),
     J_pose (N,3,6), J_line (N,3,4), whitened; row 3 (mean prior distance) is zero where there is no prior.
     jacobians=False: (r, None, None)."""
-    r2, Jp2, Jl2 = line_residuals_and_jacobians_batch(K, T_cw, U, W, seg, jacobians)
+    r, later = line_residuals(K, T_cw, U, W, seg, priors, sigma)
+    return (r, *later()) if jacobians else (r, None, None)
+
+
+def line_residuals(
+    K: np.ndarray, T_cw: np.ndarray, U: np.ndarray, W: np.ndarray, seg: np.ndarray, priors: np.ndarray, sigma: float,
+) -> tuple[np.ndarray, _Later]:
+    """line_block's r, and the function that gives its (J_pose, J_line)."""
+    r2, later2 = line_residuals_batch(K, T_cw, U, W, seg)
     n = len(seg)
     has = np.all(np.isfinite(priors.reshape(n, 6)), axis=1)
-    if not jacobians:
-        r = np.zeros((n, 3))
-        r[:, :2] = r2
-        if np.any(has):
-            r[has, 2] = factors.prior_distance_and_jacobians(T_cw[has], U[has], W[has], priors[has], False)[0]
-        return r / sigma, None, None
-    r, Jp, Jl = np.zeros((n, 3)), np.zeros((n, 3, 6)), np.zeros((n, 3, 4))
-    r[:, :2], Jp[:, :2], Jl[:, :2] = r2, Jp2, Jl2
+    r = np.zeros((n, 3))
+    r[:, :2] = r2
+    later_prior = None
     if np.any(has):
-        d, jp, jl = factors.prior_distance_and_jacobians(T_cw[has], U[has], W[has], priors[has])
-        r[has, 2], Jp[has, 2], Jl[has, 2] = d, jp, jl
-    return r / sigma, Jp / sigma, Jl / sigma
+        r[has, 2], later_prior = factors.prior_distance(T_cw[has], U[has], W[has], priors[has])
+
+    def jacobians() -> tuple[np.ndarray, np.ndarray]:
+        Jp, Jl = np.zeros((n, 3, 6)), np.zeros((n, 3, 4))
+        Jp[:, :2], Jl[:, :2] = later2()
+        if later_prior is not None:
+            Jp[has, 2], Jl[has, 2] = later_prior()
+        return Jp / sigma, Jl / sigma
+
+    return r / sigma, jacobians
 
 
 class _Layout:
@@ -112,14 +138,26 @@ class _Layout:
 
 
 class _Blocks:
-    """Whitened residual blocks at one state: list of (r (N,d), [(cols (N,), J (N,d,k))], huber k or None)."""
+    """Whitened residual blocks at one state: items (r (N,d), (cols (N,) of each variable block), huber k or None),
+    and each block's Jacobians, (N,d,k) per variable block, computed on first use (`terms`): an LM's trial step
+    needs the cost alone, and the Jacobians only once it is accepted."""
 
     def __init__(self) -> None:
-        self.items: list[tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]], float | None]] = []
+        self.items: list[tuple[np.ndarray, tuple[np.ndarray, ...], float | None]] = []
+        self._later: list[Callable[[], tuple[np.ndarray, ...]]] = []
+        self._terms: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
 
-    def add(self, r, terms, k) -> None:
+    def add(self, r: np.ndarray, cols: tuple[np.ndarray, ...], later: Callable[[], tuple[np.ndarray, ...]],
+            k: float | None) -> None:
         if len(r):
-            self.items.append((r, terms, k))
+            self.items.append((r, cols, k))
+            self._later.append(later)
+
+    def terms(self, i: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """[(cols (N,), J (N,d,k))] of block i."""
+        if i not in self._terms:
+            self._terms[i] = list(zip(self.items[i][1], self._later[i]()))
+        return self._terms[i]
 
     def weights(self) -> list[np.ndarray]:
         out = []
@@ -135,23 +173,34 @@ class _Blocks:
             total += float(np.sum(0.5 * s * s if k is None else np.where(s <= k, 0.5 * s * s, k * s - 0.5 * k * k)))
         return total
 
-    def normal_equations(self, lay: _Layout) -> _Normal:
-        """Accumulate J^T W J and J^T W r by blocks: poses dense, pose-landmark dense, landmark 3x3/4x4 blocks."""
+    def normal_equations(self, lay: _Layout, plan: dict | None = None) -> _Normal:
+        """Accumulate J^T W J and J^T W r by blocks: poses dense, pose-landmark dense, landmark 3x3/4x4 blocks.
+
+        plan: where each block's rows go (their masks and flat indices into the sums), kept between calls for the
+        same layout and observations (an LM's iterations), whose Jacobians change but not where they go."""
         ne = _Normal(lay)
-        for (r, terms, _), w in zip(self.items, self.weights()):
+        plan = {} if plan is None else plan
+        for b, ((r, _, _), w) in enumerate(zip(self.items, self.weights())):
+            terms = self.terms(b)
             rw = r * w[:, None]
-            for ca, Ja in terms:
-                oka = ca >= 0
+            for a, (ca, Ja) in enumerate(terms):
                 ka = Ja.shape[2]
-                ne.add_g(ca[oka], (rw[oka][:, None, :] @ Ja[oka])[:, 0])
+                if (b, a) not in plan:
+                    oka = ca >= 0
+                    plan[b, a] = oka, ne.g_index(ca[oka], ka)
+                oka, g_idx = plan[b, a]
+                ne.add_g(g_idx, (rw[oka][:, None, :] @ Ja[oka])[:, 0])
                 JaW = Ja * w[:, None, None]
-                for cb, Jb in terms:
-                    ok = oka & (cb >= 0)
+                for c, (cb, Jb) in enumerate(terms):
                     if (ka == 6) != (Jb.shape[2] == 6) and ka != 6:
                         continue  # landmark-pose: the transpose of pose-landmark, not stored
                     if ka != 6 and cb is not ca:
                         continue
-                    ne.add_H(ca[ok], cb[ok], JaW[ok].transpose(0, 2, 1) @ Jb[ok])
+                    if (b, a, c) not in plan:
+                        ok = oka & (cb >= 0)
+                        plan[b, a, c] = (ok, *ne.h_index(ca[ok], cb[ok], ka, Jb.shape[2]))
+                    ok, part, h_idx = plan[b, a, c]
+                    ne.add_H(part, h_idx, JaW[ok].transpose(0, 2, 1) @ Jb[ok])
         return ne
 
 
@@ -167,28 +216,31 @@ class _Normal:
         self.Hln = np.zeros(16 * lay.n_lines)
         self.g = np.zeros(lay.size)
 
-    def add_g(self, c: np.ndarray, G: np.ndarray) -> None:
-        idx = (c[:, None] + np.arange(G.shape[1])).ravel()
+    @staticmethod
+    def g_index(c: np.ndarray, k: int) -> np.ndarray:
+        """Flat indices into g of the (N,k) gradient rows of the variables starting at columns c (N,)."""
+        return (c[:, None] + np.arange(k)).ravel()
+
+    def add_g(self, idx: np.ndarray, G: np.ndarray) -> None:
         self.g += np.bincount(idx, G.ravel(), minlength=len(self.g))
 
-    def add_H(self, ca: np.ndarray, cb: np.ndarray, B: np.ndarray) -> None:
-        ka, kb = B.shape[1], B.shape[2]
+    def h_index(self, ca: np.ndarray, cb: np.ndarray, ka: int, kb: int) -> tuple[str, np.ndarray]:
+        """-> (which of Hpp, Hpl, Hpt, Hln; the flat indices there) of (N,ka,kb) blocks at columns ca, cb (N,)."""
         ii, jj = np.arange(ka)[None, :, None], np.arange(kb)[None, None, :]
         if ka == 6 and kb == 6:
-            idx = (ca[:, None, None] + ii) * self.n_p + cb[:, None, None] + jj
-            self.Hpp += np.bincount(idx.ravel(), B.ravel(), minlength=len(self.Hpp))
-        elif ka == 6:
+            return "Hpp", ((ca[:, None, None] + ii) * self.n_p + cb[:, None, None] + jj).ravel()
+        if ka == 6:
             n_l = self.lay.size - self.n_p
-            idx = (ca[:, None, None] + ii) * n_l + (cb[:, None, None] - self.n_p) + jj
-            self.Hpl += np.bincount(idx.ravel(), B.ravel(), minlength=len(self.Hpl))
-        elif ka == 3:
+            return "Hpl", ((ca[:, None, None] + ii) * n_l + (cb[:, None, None] - self.n_p) + jj).ravel()
+        if ka == 3:
             rank = (ca - self.n_p) // 3
-            idx = rank[:, None, None] * 9 + ii * 3 + jj
-            self.Hpt += np.bincount(idx.ravel(), B.ravel(), minlength=len(self.Hpt))
-        else:
-            rank = (ca - self.lay.line_start) // 4
-            idx = rank[:, None, None] * 16 + ii * 4 + jj
-            self.Hln += np.bincount(idx.ravel(), B.ravel(), minlength=len(self.Hln))
+            return "Hpt", (rank[:, None, None] * 9 + ii * 3 + jj).ravel()
+        rank = (ca - self.lay.line_start) // 4
+        return "Hln", (rank[:, None, None] * 16 + ii * 4 + jj).ravel()
+
+    def add_H(self, part: str, idx: np.ndarray, B: np.ndarray) -> None:
+        H = getattr(self, part)
+        H += np.bincount(idx, B.ravel(), minlength=len(H))
 
     def median_diagonal(self) -> float:
         """The median of the diagonal of J^T W J over all variables (1.0 when it has none or it is zero)."""
@@ -240,29 +292,25 @@ class _Normal:
         return np.concatenate([d_p, d_l])
 
 
-def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline, jacobians: bool = True) -> _Blocks:
-    """Whitened residual blocks at a state; jacobians=False gives the same residuals (and cost) without the
-    Jacobians (their terms are None), for trial steps that may be rejected."""
+def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
+    """Whitened residual blocks at a state (their Jacobians computed when asked for: _Blocks.terms)."""
     b = _Blocks()
     o = sel["pt"]
-    r, Jp, Jx = point_block(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
-                            sel["depth"], baseline, cfg.sigma_point_px, jacobians)
-    b.add(r, [(lay.pose[problem.pt_kf[o]], Jp), (lay.point[problem.pt_idx[o]], Jx)],
-          cfg.huber_point / cfg.sigma_point_px)
+    r, later = point_residuals(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
+                               sel["depth"], baseline, cfg.sigma_point_px)
+    b.add(r, (lay.pose[problem.pt_kf[o]], lay.point[problem.pt_idx[o]]), later, cfg.huber_point / cfg.sigma_point_px)
     o = sel["ln"]
     if len(o):
         j = problem.ln_idx[o]
         T_cl = T_cw[problem.ln_kf[o]].copy()  # camera <- the line's local frame (world shifted to its origin)
         T_cl[:, :3, 3] += np.einsum("nij,nj->ni", T_cl[:, :3, :3], sel["origin"][j])
-        r, Jp, Jl = line_block(problem.K, T_cl, U[j], W[j], problem.ln_seg[o], sel["prior"],
-                               cfg.sigma_line, jacobians)
-        b.add(r, [(lay.pose[problem.ln_kf[o]], Jp), (lay.line[j], Jl)], cfg.huber_line / cfg.sigma_line)
+        r, later = line_residuals(problem.K, T_cl, U[j], W[j], problem.ln_seg[o], sel["prior"], cfg.sigma_line)
+        b.add(r, (lay.pose[problem.ln_kf[o]], lay.line[j]), later, cfg.huber_line / cfg.sigma_line)
     o = sel["rel"]
     if len(o):
         i, j = problem.rel_ij[o, 0], problem.rel_ij[o, 1]
-        r, Ji, Jj = relpose_block(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o], problem.rel_weight,
-                                  jacobians)
-        b.add(r, [(lay.pose[i], Ji), (lay.pose[j], Jj)], None)
+        r, later = relpose_residuals(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o], problem.rel_weight)
+        b.add(r, (lay.pose[i], lay.pose[j]), later, None)
     return b
 
 
@@ -397,8 +445,9 @@ def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok
         lay = _Layout(problem, pt_ok, ln_ok)
         sel = _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok, ln_obs_ok)
         sel["origin"] = origin
+        plan: dict = {}  # where the rows of this layout and selection go in the normal equations
         blocks = _evaluate(problem, *state, lay, sel, cfg, baseline)
-        normal = blocks.normal_equations(lay)
+        normal = blocks.normal_equations(lay, plan)
         if attempt == 2:
             break
         weak_pt, weak_ln = _weak_landmarks(normal)
@@ -419,8 +468,9 @@ def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok
             if predicted < 1e-7 * cost:
                 break
             cand = _apply(delta, lay, *state)
-            # the cost alone: trial steps may be rejected, and their Jacobians would be thrown away
-            cand_cost = _evaluate(problem, *cand, lay, sel, cfg, baseline, jacobians=False).cost()
+            # the cost alone: trial steps may be rejected; the Jacobians are computed of the one accepted
+            cand_blocks = _evaluate(problem, *cand, lay, sel, cfg, baseline)
+            cand_cost = cand_blocks.cost()
             if np.isfinite(cand_cost) and cand_cost < cost:
                 improved = True
                 break
@@ -430,10 +480,10 @@ def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok
         rel_drop = (cost - cand_cost) / max(cost, 1e-300)
         rho = (cost - cand_cost) / max(predicted, 1e-300)
         lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12)
-        state, cost = cand, cand_cost
+        state, cost, blocks = cand, cand_cost, cand_blocks
         if rel_drop < _MIN_REL_DROP or cost < 1e-12 or np.max(np.abs(delta)) < 1e-10 or it >= cfg.iterations:
             break
-        normal = _evaluate(problem, *state, lay, sel, cfg, baseline).normal_equations(lay)
+        normal = blocks.normal_equations(lay, plan)
     return state, initial_cost, cost, it, pt_ok, ln_ok
 
 
@@ -450,7 +500,7 @@ def _outliers(problem, state: _State, origin, pt_ok, ln_ok, cfg, use_depth_prior
     for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
                                    (bad_ln, only_lines, sel["ln"], cfg.sigma_line)):
         if len(rows):
-            r = _evaluate(problem, *state, lay, part, cfg, baseline, jacobians=False).items[0][0]
+            r = _evaluate(problem, *state, lay, part, cfg, baseline).items[0][0]
             bad[rows] = sigma * np.linalg.norm(r, axis=1) > cfg.outlier_px
     return bad_pt, bad_ln
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -69,6 +70,15 @@ def prior_distance_and_jacobians(
     J_pose is w.r.t. the left perturbation xi=(rho,phi) of T_cam_world, J_line w.r.t. the orth_update delta.
     jacobians=False: (distance, None, None).
     """
+    dist, later = prior_distance(T_cam_world, U, W, priors_cam)
+    return (dist, *later()) if jacobians else (dist, None, None)
+
+
+def prior_distance(
+    T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, priors_cam: np.ndarray,
+) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+    """prior_distance_and_jacobians' distance, and a function that gives its (J_pose, J_line) from the quantities
+    the distance was computed from (for the bundle adjustment's trial steps, which need the cost alone)."""
     R, t = T_cam_world[:, :3, :3], T_cam_world[:, :3, 3]
     Lw = orth_to_plucker(U, W)
     d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
@@ -82,29 +92,31 @@ def prior_distance_and_jacobians(
         ne = np.linalg.norm(e, axis=1)
         dist += 0.5 * (ne / nd)
         errors.append((X, e, ne))
-    if not jacobians:
-        return dist, None, None
-    dL = orth_plucker_jacobian(U, W)
-    dmc_dl = R @ dL[:, :3] + hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
-    ddc_dl = R @ dL[:, 3:]
-    # Left pose perturbation: m_c += rho x d_c + phi x m_c, d_c += phi x d_c.
-    zero = np.zeros((len(R), 3, 3))
-    dmc_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)
-    ddc_dxi = np.concatenate([zero, -hat_batch(d_c)], axis=2)
-    J_pose = np.zeros((len(R), 6))
-    J_line = np.zeros((len(R), 4))
-    for X, e, ne in errors:
-        dk = ne / nd
-        safe = np.where(ne > 0, ne, 1.0)
-        g_e = e / (safe * nd)[:, None]  # d dist / d e
-        g_e[ne == 0] = 0.0
-        g_d = -(dk / nd**2)[:, None] * d_c  # d dist / d d_c through 1/|d_c|
-        # e = X x d_c - m_c: de/dd_c = [X]x, de/dm_c = -I
-        g_dc = np.einsum("ni,nij->nj", g_e, hat_batch(X)) + g_d
-        g_mc = -g_e
-        J_pose += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dxi) + np.einsum("ni,nij->nj", g_dc, ddc_dxi))
-        J_line += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dl) + np.einsum("ni,nij->nj", g_dc, ddc_dl))
-    return dist, J_pose, J_line
+
+    def jacobians() -> tuple[np.ndarray, np.ndarray]:
+        dL = orth_plucker_jacobian(U, W)
+        dmc_dl = R @ dL[:, :3] + hat_batch(t) @ R @ dL[:, 3:]  # (N,3,4)
+        ddc_dl = R @ dL[:, 3:]
+        # Left pose perturbation: m_c += rho x d_c + phi x m_c, d_c += phi x d_c.
+        zero = np.zeros((len(R), 3, 3))
+        dmc_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)
+        ddc_dxi = np.concatenate([zero, -hat_batch(d_c)], axis=2)
+        J_pose = np.zeros((len(R), 6))
+        J_line = np.zeros((len(R), 4))
+        for X, e, ne in errors:
+            dk = ne / nd
+            safe = np.where(ne > 0, ne, 1.0)
+            g_e = e / (safe * nd)[:, None]  # d dist / d e
+            g_e[ne == 0] = 0.0
+            g_d = -(dk / nd**2)[:, None] * d_c  # d dist / d d_c through 1/|d_c|
+            # e = X x d_c - m_c: de/dd_c = [X]x, de/dm_c = -I
+            g_dc = np.einsum("ni,nij->nj", g_e, hat_batch(X)) + g_d
+            g_mc = -g_e
+            J_pose += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dxi) + np.einsum("ni,nij->nj", g_dc, ddc_dxi))
+            J_line += 0.5 * (np.einsum("ni,nij->nj", g_mc, dmc_dl) + np.einsum("ni,nij->nj", g_dc, ddc_dl))
+        return J_pose, J_line
+
+    return dist, jacobians
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,8 @@ rad of pi go through the scalar se3.log, which handles that case.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from plvo.geometry import se3
@@ -65,12 +67,23 @@ def relpose_block(
     With T_cw <- exp(xi) T_cw: dr/dxi_i = Jr^-1(r) Ad(T_i_j^-1), dr/dxi_j = -Jr^-1(r), Jr^-1(r) ~ I + ad(r)/2.
     jacobians=False: (r, None, None).
     """
+    r, later = relpose_residuals(T_cw_i, T_cw_j, T_ij_meas, zeta, weight)
+    return (r, *later()) if jacobians else (r, None, None)
+
+
+def relpose_residuals(
+    T_cw_i: np.ndarray, T_cw_j: np.ndarray, T_ij_meas: np.ndarray, zeta: np.ndarray, weight: np.ndarray | None = None,
+) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+    """relpose_block's whitened r, and a function that gives its (J_i, J_j) from the quantities r was computed
+    from (for the bundle adjustment's trial steps, which need the cost alone)."""
     T_ij = T_cw_i @ se3.inv_batch(T_cw_j)
     r = log_batch(se3.inv_batch(T_ij_meas) @ T_ij)
     w = np.ones(6) if weight is None else np.asarray(weight, dtype=float)
     s = np.sqrt(np.asarray(zeta, dtype=float)[:, None] * w[None, :])  # (N,6) per-row whitening
-    if not jacobians:
-        return r * s, None, None
-    Ji = adjoint_batch(se3.inv_batch(T_ij))
-    Jr_inv = np.eye(6) + 0.5 * _ad(r)
-    return r * s, (Jr_inv @ Ji) * s[:, :, None], -Jr_inv * s[:, :, None]
+
+    def jacobians() -> tuple[np.ndarray, np.ndarray]:
+        Ji = adjoint_batch(se3.inv_batch(T_ij))
+        Jr_inv = np.eye(6) + 0.5 * _ad(r)
+        return (Jr_inv @ Ji) * s[:, :, None], -Jr_inv * s[:, :, None]
+
+    return r * s, jacobians

@@ -12,6 +12,8 @@ observations with numpy only.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from plvo.errors import PlvoError
@@ -40,6 +42,15 @@ def line_residuals_and_jacobians_batch(
     T_cam_world <- exp(xi) T_cam_world, J_line w.r.t. the orth_update delta of the world line. With
     jacobians=False the Jacobians are None and r is the same array, computed by the same operations.
     """
+    r, later = line_residuals_batch(K, T_cam_world, U, W, segments)
+    return (r, *later()) if jacobians else (r, None, None)
+
+
+def line_residuals_batch(
+    K: np.ndarray, T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, segments: np.ndarray,
+) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+    """line_residuals_and_jacobians_batch's r, and a function that gives its (J_pose, J_line) from the quantities
+    r was computed from: a trial step's cost needs r alone, and its Jacobians only once the step is accepted."""
     U = np.asarray(U, dtype=float)
     W = np.asarray(W, dtype=float)
     seg = np.asarray(segments, dtype=float)
@@ -62,21 +73,23 @@ def line_residuals_and_jacobians_batch(
     x = np.concatenate([ends, np.ones((n_obs, 2, 1))], axis=2)  # homogeneous endpoints (N,2,3)
     norm = np.hypot(l[:, 0], l[:, 1])
     r = np.einsum("nki,ni->nk", x, l) / norm[:, None]
-    if not jacobians:
-        return r, None, None
-    grad_n = np.zeros_like(l)
-    grad_n[:, :2] = l[:, :2] / norm[:, None]  # d|l_12|/dl
-    dr_dl = (x - r[:, :, None] * grad_n[:, None, :]) / norm[:, None, None]
-    dr_dm = dr_dl @ K_L  # (N,2,3)
 
-    # m_c(xi) = m_c + rho x d_c + phi x m_c to first order.
-    dm_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)  # (N,3,6)
-    J_pose = dr_dm @ dm_dxi
+    def jacobians() -> tuple[np.ndarray, np.ndarray]:
+        grad_n = np.zeros_like(l)
+        grad_n[:, :2] = l[:, :2] / norm[:, None]  # d|l_12|/dl
+        dr_dl = (x - r[:, :, None] * grad_n[:, None, :]) / norm[:, None, None]
+        dr_dm = dr_dl @ K_L  # (N,2,3)
 
-    dL = orth_plucker_jacobian(U, W)  # (N,6,4)
-    dmc_dline = R @ dL[:, :3, :] + hat_batch(t) @ R @ dL[:, 3:, :]
-    J_line = dr_dm @ dmc_dline
-    return r, J_pose, J_line
+        # m_c(xi) = m_c + rho x d_c + phi x m_c to first order.
+        dm_dxi = np.concatenate([-hat_batch(d_c), -hat_batch(m_c)], axis=2)  # (N,3,6)
+        J_pose = dr_dm @ dm_dxi
+
+        dL = orth_plucker_jacobian(U, W)  # (N,6,4)
+        dmc_dline = R @ dL[:, :3, :] + hat_batch(t) @ R @ dL[:, 3:, :]
+        J_line = dr_dm @ dmc_dline
+        return J_pose, J_line
+
+    return r, jacobians
 
 
 def line_residual_jacobians(

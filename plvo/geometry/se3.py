@@ -77,9 +77,13 @@ def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
 def exp(xi: np.ndarray) -> np.ndarray:
     """(6,) tangent (rho, phi) -> (4,4) pose."""
     xi = np.asarray(xi, dtype=float)
+    phi = xi[3:]
+    # so3_exp(phi) and _left_jacobian(phi) @ rho by their own operations, the series and the hat computed once
+    a, b, c = _series(float(np.linalg.norm(phi)))
+    W = hat(phi)
     T = np.eye(4)
-    T[:3, :3] = so3_exp(xi[3:])
-    T[:3, 3] = _left_jacobian(xi[3:]) @ xi[:3]
+    T[:3, :3] = np.eye(3) + a * W + b * W @ W
+    T[:3, 3] = (np.eye(3) + b * W + c * W @ W) @ xi[:3]
     return T
 
 
