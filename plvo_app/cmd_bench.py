@@ -143,6 +143,7 @@ class Reopen:
 
 def run(args: argparse.Namespace) -> int:
     from plvo_app.cmd_viz import git_revision, plvo_version
+    from plvo_app.run_identity import input_files
 
     stages = parse_stages(args.stages)  # bad arguments fail before any work
     if args.out is not None and args.out.is_dir():
@@ -155,7 +156,9 @@ def run(args: argparse.Namespace) -> int:
     info = RunInfo(name="bench", sequence=dataset.sequence, calib=dataset.calib,
                    frame_indices=dataset.frame_indices, gt_T_world_cam=dataset.gt_T_world_cam,
                    config=config_to_dict(cfg), version=plvo_version(), git_revision=git_revision(),
-                   command_line=command, extra={"config_toml": config_to_toml(cfg)})
+                   command_line=command,
+                   # the input files too, so that the recorder digests each frame's files as it does in plvo-viz
+                   extra={"config_toml": config_to_toml(cfg), "input_files": input_files(dataset)})
     if args.soak:
         return _soak(args, cfg, dataset, info, machine, command)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:

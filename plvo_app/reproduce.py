@@ -1,11 +1,11 @@
 """Turn a recording back into its run and say whether the run reproduces.
 
 The recording holds the config (TOML), the dataset's identity (layout, sequence, root, frames, calibration), a
-sha256 prefix of each input file and, optionally, the raw inputs of a window (`inputs/*`). `reproduce` reruns
-those frames with that config, records the rerun at the summary level (the per-frame poses, every stage's counts
-and the decision log, as the original has them) and compares: the first frame whose pose departs by more than the
-tolerance, and the first stage result that changed (feature counts, matches, inliers, depth priors, keyframe
-decisions, back-end and loop counts; timings are not compared).
+digest prefix of each input file (xxh3-128; sha256 in recordings made before it) and, optionally, the raw inputs
+of a window (`inputs/*`). `reproduce` reruns those frames with that config, records the rerun at the summary level
+(the per-frame poses, every stage's counts and the decision log, as the original has them) and compares: the first
+frame whose pose departs by more than the tolerance, and the first stage result that changed (feature counts,
+matches, inliers, depth priors, keyframe decisions, back-end and loop counts; timings are not compared).
 """
 
 # The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
@@ -27,7 +27,7 @@ from plvo.errors import ConfigError, RecordingError
 from plvo.geometry.se3 import inv, rotation_angle
 from plvo.types import Frame
 from plvo_app.rrd_reader import RrdData, open_rrd, read_rrd
-from plvo_app.run_identity import calib_from_dict, decode_inputs, file_sha256, input_files
+from plvo_app.run_identity import calib_from_dict, decode_inputs, file_digest, input_files
 from plvo_app.scene_common import _pose_from_row
 
 log = logging.getLogger(__name__)
@@ -185,14 +185,19 @@ def _check_hashes(ds, data: RrdData) -> list[str]:
     if frames is None:
         return ["the recording holds no input hashes: the inputs cannot be checked"]
     frames = json.loads(frames) if isinstance(frames, str) else _list(frames)
-    want = {int(f): (i, s) for f, i, s in zip(frames, _list(data.properties["plvo_inputs:image_sha256"]),
-                                              _list(data.properties["plvo_inputs:scan_sha256"]))}
+    named = data.properties.get("plvo_inputs:hash")
+    if named is None:  # a recording made before the digests were named: sha256 prefixes
+        algorithm, column = "sha256", "sha256"
+    else:
+        algorithm, column = str(_list(named)[0]), "hash"
+    want = {int(f): (i, s) for f, i, s in zip(frames, _list(data.properties[f"plvo_inputs:image_{column}"]),
+                                              _list(data.properties[f"plvo_inputs:scan_{column}"]))}
     bad = []
     for f, (image, scan) in input_files(ds).items():
         if f not in want:
             continue
         for kind, file, h in (("image", image, want[f][0]), ("scan", scan, want[f][1])):
-            if not file_sha256(file).startswith(str(h)):
+            if not file_digest(file, algorithm).startswith(str(h)):
                 bad.append(f"frame {f}: {kind} file {file} differs from the one recorded")
     if not bad:
         return [f"inputs: all {2 * len(want)} files match the recorded hashes"]

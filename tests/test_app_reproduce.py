@@ -5,16 +5,23 @@ window and its static data."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import xxhash
 
+from plvo.data.registry import open_dataset
 from plvo.errors import RecordingError
 from plvo_app.cli import main_viz
 from plvo_app.cmd_clip import clip
-from plvo_app.reproduce import reproduce
+from plvo_app.reproduce import _check_hashes, reproduce
 from plvo_app.rrd_reader import read_rrd
+from plvo_app.run_identity import file_digest, input_files
 
 N = 8
 
@@ -37,8 +44,30 @@ def test_recording_names_its_inputs_and_machine(run):
     props = read_rrd(rrd, content=["/log"]).properties
     assert props["plvo_dataset:sequence"] == "00" and props["plvo_dataset:layout"] == "kitti_odometry"
     assert props["plvo_dataset:frames"] == str(list(range(N)))
-    assert len(props["plvo_inputs:scan_sha256"]) == N and props["plvo_machine:cpus"]
+    assert len(props["plvo_inputs:scan_hash"]) == N and props["plvo_machine:cpus"]
     assert "concurrent = false" in props["plvo:config"]
+    hashed = props["plvo_inputs:hash"]
+    assert (hashed if isinstance(hashed, str) else hashed[0]) == "xxh3_128"
+    scan = root / "sequences" / "00" / "velodyne" / "000003.bin"
+    assert props["plvo_inputs:scan_hash"][3] == file_digest(scan)[:24]
+    assert xxhash.xxh3_128(scan.read_bytes()).hexdigest() == file_digest(scan)
+
+
+def test_a_recording_of_sha256_prefixes_is_still_checked(run, tmp_path):
+    """Recordings made before the digests were named hold sha256 prefixes under image_sha256 / scan_sha256."""
+    root, _ = run
+    ds = open_dataset(root, "00", frames=range(N))
+    files = input_files(ds)
+    old = {"plvo_inputs:frames": json.dumps(sorted(files)),
+           "plvo_inputs:image_sha256": [hashlib.sha256(Path(files[f][0]).read_bytes()).hexdigest()[:24]
+                                        for f in sorted(files)],
+           "plvo_inputs:scan_sha256": [hashlib.sha256(Path(files[f][1]).read_bytes()).hexdigest()[:24]
+                                       for f in sorted(files)]}
+    matched = _check_hashes(ds, SimpleNamespace(properties=old))
+    assert matched == [f"inputs: all {2 * N} files match the recorded hashes"]
+    old["plvo_inputs:scan_sha256"][2] = "0" * 24
+    assert _check_hashes(ds, SimpleNamespace(properties=old)) == [
+        f"frame 2: scan file {files[2][1]} differs from the one recorded"]
 
 
 def test_reproduces_from_the_dataset(run):

@@ -255,3 +255,24 @@ def test_the_kitti_scan_reader_is_the_frames_scan(synth_seq):
     read = scan_reader(dataset)
     np.testing.assert_array_equal(read(1), dataset[1].scan)
     np.testing.assert_array_equal(read(-1), dataset[2].scan)
+
+
+def test_the_bench_records_with_the_input_files_as_plvo_viz_does(kitti_root, tmp_path, monkeypatch):
+    """plvo-viz's recorder digests every frame's image and scan file (plvo_app.run_identity); the bench's recorded
+    runs stand for plvo-viz, so their RunInfo names the same files and the recorder digests them too."""
+    from plvo.data.registry import open_dataset
+    from plvo_app.run_identity import input_files
+
+    seen = {}
+
+    def capture(dataset, cfg, stages, repeat, factory, info, reopen):
+        seen["info"] = info
+        raise KeyboardInterrupt  # stop before any run: only what the runs would be given is checked
+
+    monkeypatch.setattr(cmd_bench, "run_bench", capture)
+    out = tmp_path / "b.json"
+    code = main(["bench", "--root", str(kitti_root), "--seq", "04", "--frames", "0:3", "--out", str(out)])
+    assert code != 0 and not out.exists()  # interrupted: no result that looks complete
+    files = seen["info"].extra["input_files"]
+    assert files == input_files(open_dataset(kitti_root, "04", range(3))) and len(files) == 3
+    assert all(f.endswith(".png") and s.endswith(".bin") for f, s in files.values())
