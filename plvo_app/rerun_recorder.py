@@ -615,7 +615,7 @@ class RerunRecorder:
                 summary |= kind == EDGE_LOOP
                 self.rec.log(E["graph"], strips(summary))
                 if not summary.all():
-                    self._policy.defer(self._at, (E["graph"], strips(everything)))
+                    self._policy.defer(self._at, (E["graph"], _Lazy(strips, everything)))
 
     def map(self, m: MapResult) -> None:
         pts, lines = np.asarray(m.points, np.float32), np.asarray(m.lines, np.float32)
@@ -624,17 +624,17 @@ class RerunRecorder:
             return (rr.Points3D(p, colors=[(150, 150, 160)], radii=rr.Radius.ui_points(2)),
                     rr.LineStrips3D(ln, colors=[CYAN]))
 
-        full = archetypes(pts, lines)
         if self._policy.want(self._at):
+            full = archetypes(pts, lines)
             self.rec.log(E["map_points"], full[0])
             self.rec.log(E["map_lines"], full[1])
-        else:  # the map at every keyframe, thinned; the full snapshot only if an event wants this frame
+        else:  # the map at every keyframe, thinned; the full snapshot, made only if an event wants this frame
             thinned = archetypes(pts[thin(len(pts), self.opt.map_summary_points)],
                                  lines[thin(len(lines), self.opt.map_summary_lines)])
             self.rec.log(E["map_points"], thinned[0])
             self.rec.log(E["map_lines"], thinned[1])
-            self._policy.defer(self._at, (E["map_points"], full[0]))
-            self._policy.defer(self._at, (E["map_lines"], full[1]))
+            self._policy.defer(self._at, (E["map_points"], _Lazy(lambda: archetypes(pts, lines)[0])))
+            self._policy.defer(self._at, (E["map_lines"], _Lazy(lambda: archetypes(pts, lines)[1])))
         self._scalars("map", {"points": len(m.points), "lines": len(m.lines)})
 
     def loop(self, lr: LoopResult) -> None:
