@@ -71,6 +71,25 @@ def test_the_map_follows_the_poses_it_is_given_and_keeps_the_last_keyframes(town
         lmap.add(4, np.asarray(scans[4].fine.points), poses[4])
 
 
+def test_a_scan_is_downsampled_when_a_map_first_needs_it_to_the_same_points(town):
+    """A keyframe's scan is downsampled (and its normals estimated) on the map's first build after it was added,
+    not when it is added: a run's last keyframe, which nothing registers to, costs nothing. Downsampled at once or
+    later, the map is the same to the last bit."""
+    poses, scans, cfg = town
+    lazy, eager = LocalMap(4, 0.5, cfg), LocalMap(4, 0.5, cfg)
+    for k in range(6):
+        for lmap in (lazy, eager):
+            lmap.add(k, np.asarray(scans[k].fine.points), poses[k])
+        eager._entries[-1].downsampled(0.5)  # as every keyframe was before
+        assert lazy._entries[-1].points is None and lazy._entries[-1].scan is not None  # nothing made yet
+        if k in (2, 5):
+            a, b = lazy.cloud(), eager.cloud()
+            np.testing.assert_array_equal(np.asarray(a.points), np.asarray(b.points))
+            np.testing.assert_array_equal(np.asarray(a.normals), np.asarray(b.normals))
+            assert all(e.points is not None and e.scan is None for e in lazy._entries)
+    assert len(np.asarray(lazy.cloud().points)) > 1000
+
+
 def test_an_alignment_that_cannot_hold_says_why(town):
     poses, scans, cfg = town
     with pytest.raises(PlvoError, match="no keyframe scans"):

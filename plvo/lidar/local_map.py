@@ -71,9 +71,22 @@ class MapAlignment:
 @dataclass
 class _Entry:
     kf_id: int
-    points: np.ndarray  # (N,3) in the keyframe's own lidar frame
-    normals: np.ndarray  # (N,3) their unit normals, estimated once in that frame
     T_world_lidar: np.ndarray  # where the map last placed it
+    scan: np.ndarray | None  # (N,3) lidar frame, as given, until `downsampled` has used it
+    points: np.ndarray | None = None  # (M,3) downsampled to the map's voxel, in the keyframe's own lidar frame
+    normals: np.ndarray | None = None  # (M,3) their unit normals, estimated once in that frame
+
+    def downsampled(self, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(points, normals), made on first use: the map's first build after the keyframe was added (never, for
+        the last keyframe of a run, whose registration nothing follows: ~25 ms of a KITTI scan's that the run's end
+        waited for). Made when and where, the same values."""
+        if self.points is None or self.normals is None:
+            assert self.scan is not None
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.scan)).voxel_down_sample(voxel_m)
+            # a scan's normals move with it: estimated here once, not on the whole map at every placement
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=_NORMAL_NEIGHBOURS))
+            self.points, self.normals, self.scan = np.asarray(pc.points), np.asarray(pc.normals), None
+        return self.points, self.normals
 
 
 class LocalMap:
@@ -100,17 +113,14 @@ class LocalMap:
 
     def add(self, kf_id: int, points: np.ndarray, T_world_lidar: np.ndarray) -> None:
         """Insert keyframe kf_id's scan ((N,3) lidar frame, e.g. a registration-prepared cloud's points) at its
-        pose; it is downsampled to the map's voxel here. The oldest keyframes beyond max_keyframes are dropped."""
+        pose; it is downsampled to the map's voxel when a map is first built with it (_Entry.downsampled). The
+        oldest keyframes beyond max_keyframes are dropped."""
         pts = np.asarray(points, float)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise PlvoError(f"local map: keyframe {kf_id}'s points must have shape (N,3), got {pts.shape}")
         if self._entries and kf_id <= self._entries[-1].kf_id:
             raise PlvoError(f"local map: keyframe {kf_id} added after keyframe {self._entries[-1].kf_id}")
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[:, :3])).voxel_down_sample(self.voxel_m)
-        # a scan's normals move with it: estimated here once, not on the whole map at every placement
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=_NORMAL_NEIGHBOURS))
-        self._entries.append(_Entry(int(kf_id), np.asarray(pc.points), np.asarray(pc.normals),
-                                    np.array(T_world_lidar, float)))
+        self._entries.append(_Entry(int(kf_id), np.array(T_world_lidar, float), np.array(pts[:, :3], float)))
         del self._entries[:-self.max_keyframes]
         self._built = None
 
@@ -135,8 +145,9 @@ class LocalMap:
         if self._built is None:
             if not self._entries:
                 raise PlvoError("local map: no keyframe scans to build a map from")
-            pts = np.concatenate([se3.transform_points(e.T_world_lidar, e.points) for e in self._entries])
-            nrm = np.concatenate([e.normals @ e.T_world_lidar[:3, :3].T for e in self._entries])
+            parts = [(e.T_world_lidar, *e.downsampled(self.voxel_m)) for e in self._entries]
+            pts = np.concatenate([se3.transform_points(T, p) for T, p, _ in parts])
+            nrm = np.concatenate([n @ T[:3, :3].T for T, _, n in parts])
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
             pc.normals = o3d.utility.Vector3dVector(nrm)
             # where scans overlap, a voxel's normal is the mean of theirs (their signs are each scan's own: a
