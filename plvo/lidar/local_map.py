@@ -77,9 +77,9 @@ class _Entry:
     normals: np.ndarray | None = None  # (M,3) their unit normals, estimated once in that frame
 
     def downsampled(self, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """(points, normals), made on first use: the map's first build after the keyframe was added (never, for
-        the last keyframe of a run, whose registration nothing follows: ~25 ms of a KITTI scan's that the run's end
-        waited for). Made when and where, the same values."""
+        """(points, normals), made on first use: at the map's first build after the keyframe was added, or never
+        for a run's last keyframe, which nothing registers to (~25 ms for a KITTI scan, which the run's end used to
+        wait for). Whenever they are made, the same values."""
         if self.points is None or self.normals is None:
             assert self.scan is not None
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.scan)).voxel_down_sample(voxel_m)
