@@ -213,6 +213,14 @@ def test_trial_steps_are_priced_without_jacobians_which_come_later_the_same():
         np.testing.assert_array_equal(Ja_later, Ja)
         np.testing.assert_array_equal(Jb_later, Jb)
     assert blocks.terms(0) is blocks.terms(0)  # computed once
+    # the prior rows reuse the camera-frame lines of the reprojection rows: the same bits as computed apart
+    has = np.all(np.isfinite(sel["prior"].reshape(len(j), 6)), axis=1)
+    assert 0 < has.sum() < len(j)
+    d, jp, jl = factors.prior_distance_and_jacobians(T_cl[has], U[j][has], W[j][has], sel["prior"][has])
+    r_line, Jp_line, Jl_line = at_once[1]
+    np.testing.assert_array_equal(r_line[has, 2], d / cfg.sigma_line)
+    np.testing.assert_array_equal(Jp_line[has, 2], jp / cfg.sigma_line)
+    np.testing.assert_array_equal(Jl_line[has, 2], jl / cfg.sigma_line)
     plan: dict = {}
     blocks.normal_equations(lay, plan)
     assert plan

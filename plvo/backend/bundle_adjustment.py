@@ -102,14 +102,14 @@ def line_residuals(
     K: np.ndarray, T_cw: np.ndarray, U: np.ndarray, W: np.ndarray, seg: np.ndarray, priors: np.ndarray, sigma: float,
 ) -> tuple[np.ndarray, _Later]:
     """line_block's r, and the function that gives its (J_pose, J_line)."""
-    r2, later2 = line_residuals_batch(K, T_cw, U, W, seg)
+    r2, later2, (d_c, m_c) = line_residuals_batch(K, T_cw, U, W, seg)
     n = len(seg)
     has = np.all(np.isfinite(priors.reshape(n, 6)), axis=1)
     r = np.zeros((n, 3))
     r[:, :2] = r2
     later_prior = None
     if np.any(has):
-        r[has, 2], later_prior = factors.prior_distance(T_cw[has], U[has], W[has], priors[has])
+        r[has, 2], later_prior = factors.prior_distance(T_cw[has], U[has], W[has], priors[has], (d_c[has], m_c[has]))
 
     def jacobians() -> tuple[np.ndarray, np.ndarray]:
         Jp, Jl = np.zeros((n, 3, 6)), np.zeros((n, 3, 4))

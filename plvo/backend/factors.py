@@ -76,13 +76,18 @@ def prior_distance_and_jacobians(
 
 def prior_distance(
     T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, priors_cam: np.ndarray,
+    camera_lines: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]]]:
     """prior_distance_and_jacobians' distance, and a function that gives its (J_pose, J_line) from the quantities
-    the distance was computed from (for the bundle adjustment's trial steps, which need the cost alone)."""
+    the distance was computed from (for the bundle adjustment's trial steps, which need the cost alone);
+    camera_lines: the lines in the camera frame, (d_c, m_c) (N,3) each, when the caller has them."""
     R, t = T_cam_world[:, :3, :3], T_cam_world[:, :3, 3]
-    Lw = orth_to_plucker(U, W)
-    d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
-    m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + cross3(t, d_c)
+    if camera_lines is None:
+        Lw = orth_to_plucker(U, W)
+        d_c = np.einsum("nij,nj->ni", R, Lw[:, 3:])
+        m_c = np.einsum("nij,nj->ni", R, Lw[:, :3]) + cross3(t, d_c)
+    else:
+        d_c, m_c = camera_lines
     nd = np.linalg.norm(d_c, axis=1)
     dist = np.zeros(len(R))
     errors = []

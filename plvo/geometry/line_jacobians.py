@@ -42,15 +42,16 @@ def line_residuals_and_jacobians_batch(
     T_cam_world <- exp(xi) T_cam_world, J_line w.r.t. the orth_update delta of the world line. With
     jacobians=False the Jacobians are None and r is the same array, computed by the same operations.
     """
-    r, later = line_residuals_batch(K, T_cam_world, U, W, segments)
+    r, later, _ = line_residuals_batch(K, T_cam_world, U, W, segments)
     return (r, *later()) if jacobians else (r, None, None)
 
 
 def line_residuals_batch(
     K: np.ndarray, T_cam_world: np.ndarray, U: np.ndarray, W: np.ndarray, segments: np.ndarray,
-) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]]]:
-    """line_residuals_and_jacobians_batch's r, and a function that gives its (J_pose, J_line) from the quantities
-    r was computed from: a trial step's cost needs r alone, and its Jacobians only once the step is accepted."""
+) -> tuple[np.ndarray, Callable[[], tuple[np.ndarray, np.ndarray]], tuple[np.ndarray, np.ndarray]]:
+    """line_residuals_and_jacobians_batch's r, a function that gives its (J_pose, J_line) from the quantities r was
+    computed from (a trial step's cost needs r alone, and its Jacobians only once the step is accepted), and the
+    lines in the camera frame, (d_c, m_c) (N,3) each."""
     U = np.asarray(U, dtype=float)
     W = np.asarray(W, dtype=float)
     seg = np.asarray(segments, dtype=float)
@@ -89,7 +90,7 @@ def line_residuals_batch(
         J_line = dr_dm @ dmc_dline
         return J_pose, J_line
 
-    return r, jacobians
+    return r, jacobians, (d_c, m_c)
 
 
 def line_residual_jacobians(
