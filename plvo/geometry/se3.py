@@ -28,12 +28,18 @@ def _series(theta: float) -> tuple[float, float, float]:
     return np.sin(theta) / theta, (1.0 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
 
 
+def _so3_exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) rotation vector -> its rotation (3,3) (Rodrigues) and left Jacobian (3,3), from one series and one hat:
+    `exp` needs both, and the bundle adjustment calls it for every free pose of every step."""
+    phi = np.asarray(phi, dtype=float)
+    a, b, c = _series(float(np.linalg.norm(phi)))
+    W = hat(phi)
+    return np.eye(3) + a * W + b * W @ W, np.eye(3) + b * W + c * W @ W
+
+
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     """(3,) rotation vector -> (3,3) rotation matrix (Rodrigues)."""
-    phi = np.asarray(phi, dtype=float)
-    a, b, _ = _series(float(np.linalg.norm(phi)))
-    W = hat(phi)
-    return np.eye(3) + a * W + b * W @ W
+    return _so3_exp_and_left_jacobian(phi)[0]
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -57,9 +63,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    _, b, c = _series(float(np.linalg.norm(phi)))
-    W = hat(phi)
-    return np.eye(3) + b * W + c * W @ W
+    return _so3_exp_and_left_jacobian(phi)[1]
 
 
 def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
@@ -77,13 +81,10 @@ def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
 def exp(xi: np.ndarray) -> np.ndarray:
     """(6,) tangent (rho, phi) -> (4,4) pose."""
     xi = np.asarray(xi, dtype=float)
-    phi = xi[3:]
-    # so3_exp(phi) and _left_jacobian(phi) @ rho by their own operations, the series and the hat computed once
-    a, b, c = _series(float(np.linalg.norm(phi)))
-    W = hat(phi)
+    R, V = _so3_exp_and_left_jacobian(xi[3:])
     T = np.eye(4)
-    T[:3, :3] = np.eye(3) + a * W + b * W @ W
-    T[:3, 3] = (np.eye(3) + b * W + c * W @ W) @ xi[:3]
+    T[:3, :3] = R
+    T[:3, 3] = V @ xi[:3]
     return T
 
 
