@@ -620,21 +620,20 @@ class RerunRecorder:
     def map(self, m: MapResult) -> None:
         pts, lines = np.asarray(m.points, np.float32), np.asarray(m.lines, np.float32)
 
-        def archetypes(p: np.ndarray, ln: np.ndarray) -> tuple[rr.Points3D, rr.LineStrips3D]:
-            return (rr.Points3D(p, colors=[(150, 150, 160)], radii=rr.Radius.ui_points(2)),
-                    rr.LineStrips3D(ln, colors=[CYAN]))
+        def points(p: np.ndarray) -> rr.Points3D:
+            return rr.Points3D(p, colors=[(150, 150, 160)], radii=rr.Radius.ui_points(2))
+
+        def strips(ln: np.ndarray) -> rr.LineStrips3D:
+            return rr.LineStrips3D(ln, colors=[CYAN])
 
         if self._policy.want(self._at):
-            full = archetypes(pts, lines)
-            self.rec.log(E["map_points"], full[0])
-            self.rec.log(E["map_lines"], full[1])
+            self.rec.log(E["map_points"], points(pts))
+            self.rec.log(E["map_lines"], strips(lines))
         else:  # the map at every keyframe, thinned; the full snapshot, made only if an event wants this frame
-            thinned = archetypes(pts[thin(len(pts), self.opt.map_summary_points)],
-                                 lines[thin(len(lines), self.opt.map_summary_lines)])
-            self.rec.log(E["map_points"], thinned[0])
-            self.rec.log(E["map_lines"], thinned[1])
-            self._policy.defer(self._at, (E["map_points"], _Lazy(lambda: archetypes(pts, lines)[0])))
-            self._policy.defer(self._at, (E["map_lines"], _Lazy(lambda: archetypes(pts, lines)[1])))
+            self.rec.log(E["map_points"], points(pts[thin(len(pts), self.opt.map_summary_points)]))
+            self.rec.log(E["map_lines"], strips(lines[thin(len(lines), self.opt.map_summary_lines)]))
+            self._policy.defer(self._at, (E["map_points"], _Lazy(points, pts)))
+            self._policy.defer(self._at, (E["map_lines"], _Lazy(strips, lines)))
         self._scalars("map", {"points": len(m.points), "lines": len(m.lines)})
 
     def loop(self, lr: LoopResult) -> None:
