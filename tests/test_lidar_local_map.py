@@ -73,14 +73,15 @@ def test_the_map_follows_the_poses_it_is_given_and_keeps_the_last_keyframes(town
 
 def test_a_scan_is_downsampled_when_a_map_first_needs_it_to_the_same_points(town):
     """A keyframe's scan is downsampled (and its normals estimated) on the map's first build after it was added,
-    not when it is added: a run's last keyframe, which nothing registers to, costs nothing. Downsampled at once or
-    later, the map is the same to the last bit."""
+    or ahead of it when asked (`prepare`, which the back end's worker process calls between jobs), not when it is
+    added. Downsampled ahead or at the build, the map is the same to the last bit."""
     poses, scans, cfg = town
     lazy, eager = LocalMap(4, 0.5, cfg), LocalMap(4, 0.5, cfg)
     for k in range(6):
         for lmap in (lazy, eager):
             lmap.add(k, np.asarray(scans[k].fine.points), poses[k])
-        eager._entries[-1].downsampled(0.5)  # as every keyframe was before
+        eager.prepare()
+        assert eager._entries[-1].points is not None and eager._entries[-1].scan is None
         assert lazy._entries[-1].points is None and lazy._entries[-1].scan is not None  # nothing made yet
         if k in (2, 5):
             a, b = lazy.cloud(), eager.cloud()

@@ -250,3 +250,63 @@ def test_a_core_that_cannot_be_made_is_named_by_the_liveness_check_too():
         assert str(err.value) == "the back end failed to start: ImportError: no module named 'open3d'"
     finally:
         w.close()
+
+
+class CountsIdle(RunningSum):
+    """A core with work to do between jobs: its outputs say how often it was given the time. `raising`: its idle
+    work fails every time."""
+
+    def __init__(self, start: int, raising: bool = False, job_s: float = 0.0):
+        super().__init__(start)
+        self.idled, self.raising, self.job_s = 0, raising, job_s
+
+    def idle(self) -> None:
+        self.idled += 1
+        if self.raising:
+            raise RuntimeError("idle work failed")
+
+    def process(self, job: Job) -> tuple[int, int]:
+        import time
+
+        time.sleep(self.job_s)
+        return super().process(job), self.idled
+
+
+@pytest.mark.parametrize("raising", [False, True])
+def test_a_worker_process_gives_its_core_the_time_between_jobs(raising):
+    """After sending a result, a worker process with no job waiting lets its core work ahead (`idle`, the back end's
+    downsampling of the newest scan for the next registration); the outputs are the core's alone, and an idle that
+    fails is no failure of the worker (the job that needs the work does it)."""
+    import time
+
+    w = OrderedWorker("summer", CountsIdle, (0, raising), "process")
+    try:
+        w.submit(Job(1, 3))
+        assert w.take() == (1, 0)
+        time.sleep(0.3)  # the worker has sent its result and found no job: its core had the time
+        w.submit(Job(2, 6))
+        assert w.take() == (3, 1)
+    finally:
+        w.close()
+
+
+def test_a_worker_process_does_not_work_ahead_while_a_job_waits():
+    w = OrderedWorker("summer", CountsIdle, (0, False, 0.3), "process")
+    try:
+        w.submit(Job(1, 3))
+        w.submit(Job(2, 6))  # in the pipe while the first runs: the second starts at once
+        assert [w.take(), w.take()] == [(1, 0), (3, 0)]
+    finally:
+        w.close()
+
+
+@pytest.mark.parametrize("mode", ["inline", "thread"])
+def test_idle_work_is_a_worker_process_s_alone(mode):
+    """Inline and in a thread the core shares the caller's process: nothing runs it between jobs."""
+    w = OrderedWorker("summer", CountsIdle, (0,), mode)
+    try:
+        for k in (1, 2, 3):
+            w.submit(Job(k, 3 * k))
+        assert [w.take() for _ in range(3)] == [(1, 0), (3, 0), (6, 0)]
+    finally:
+        w.close()

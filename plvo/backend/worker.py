@@ -111,6 +111,12 @@ class BackendCore:
         self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration) \
             if b.lidar_target == "local_map" else None
 
+    def idle(self) -> None:
+        """Work for the next job done while no job waits (plvo.workers calls it between a worker process's jobs):
+        the newest keyframe's scan downsampled for the local map, which the next registration would do first."""
+        if self._local_map is not None:
+            self._local_map.prepare()
+
     def process(self, job: BackendJob) -> BackendOutput:
         """Register, correct scale, bundle-adjust one window -> BackendOutput (the map is not touched)."""
         seconds: dict[str, float] = {}

@@ -77,9 +77,10 @@ class _Entry:
     normals: np.ndarray | None = None  # (M,3) their unit normals, estimated once in that frame
 
     def downsampled(self, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """(points, normals), made on first use: at the map's first build after the keyframe was added, or never
-        for a run's last keyframe, which nothing registers to (~25 ms for a KITTI scan, which the run's end used to
-        wait for). Whenever they are made, the same values."""
+        """(points, normals), made on first use: when the back end's worker has nothing else to do (LocalMap.prepare)
+        or else at the map's first build after the keyframe was added (~25-35 ms for a KITTI scan, which the next
+        keyframe's registration, and at a run's end the run, would otherwise wait for). Whenever they are made, the
+        same values."""
         if self.points is None or self.normals is None:
             assert self.scan is not None
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.scan)).voxel_down_sample(voxel_m)
@@ -136,6 +137,12 @@ class LocalMap:
         for e in self._entries:
             e.T_world_lidar = given[e.kf_id].copy() if e.kf_id in given else carry @ e.T_world_lidar
         self._built = None
+
+    def prepare(self) -> None:
+        """Downsample the keyframes' scans that no map was built with yet: what the next registration's map would
+        do first, done ahead when there is time for it (BackendCore.idle). Changes no result."""
+        for e in self._entries:
+            e.downsampled(self.voxel_m)
 
     def cloud(self) -> o3d.geometry.PointCloud:
         """The map as one world-frame cloud, downsampled to voxel_m, with normals (built once per placement)."""
