@@ -13,9 +13,9 @@ Where it runs (`mode`):
 - "process": a spawned worker process with a pipe each way (`_ProcessLink`). No GIL is shared; each job ships its
   window (a few hundred kB) and each keyframe's scan (about 2 MB) once. Between jobs, when none is waiting, the
   process lets its core work ahead for the next one (its `idle()`, where it has one: the back end downsamples the
-  newest keyframe's scan for its next registration, which made each of its jobs ~35 ms longer on KITTI 04). Log records of the worker are sent back with
-  each output and logged again in this process when the output is taken, so they reach the recorders in a fixed
-  order.
+  newest keyframe's scan for its next registration, which made each of its jobs ~35 ms longer on KITTI 04). Log
+  records of the worker are sent back with each output and logged again in this process when the output is taken,
+  so they reach the recorders in a fixed order.
 
 Failures come back from `take` as `plvo.errors.WorkerError`, one line naming the worker and the job (keyframe and
 frame), and the worker is then failed for good:
