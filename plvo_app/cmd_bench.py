@@ -252,6 +252,10 @@ def format_table(report: dict) -> str:
                      f"{dep['setup_s']:.2f} s; KISS-ICP on the same scans: {_fig(dep['kiss_icp_fps'])} frames/s, "
                      f"set-up {_fig(dep['kiss_icp_setup_s'])} s; ratio, run by run, median "
                      f"{_fig(dep['ratio_to_kiss_icp'])} (medians of {len(dep['pairs'])} runs)")
+        ci = dep.get("ratio_to_kiss_icp_interval")
+        if ci:
+            lines.append(f"  ratio's geometric mean {ci['geomean']:.3f}, {100 * ci['level']:.0f} % bootstrap interval "
+                         f"{ci['low']:.3f}-{ci['high']:.3f}")
         for n, p in enumerate(dep["pairs"]):
             lines.append(f"  run {n + 1}: plvo {p['plvo_fps']:.2f} frames/s (set-up {p['plvo_setup_s']:.2f} s), "
                          f"KISS-ICP {_fig(p['kiss_icp_fps'])} frames/s (set-up {_fig(p['kiss_icp_setup_s'])} s), "

@@ -123,6 +123,7 @@ def test_whole_system_with_and_without_recording(synth_seq, tmp_path):
     assert dep["at_least_kiss_icp"] == (dep["fps"] >= dep["kiss_icp_fps"])
     assert pair["ratio"] == pytest.approx(dep["fps"] / kiss["fps"], rel=1e-2)
     assert dep["ratio_to_kiss_icp"] == pair["ratio"] and dep["ratio_to_kiss_icp_runs"] == [pair["ratio"]]
+    assert dep["ratio_to_kiss_icp_interval"] is None  # one run: no interval
     # the CPU of every process: the worker processes (back end, loop closer) did the keyframes' work
     run = dep["runs"][0]
     assert run["workers_cpu_ms_per_frame"] > 0
@@ -276,3 +277,20 @@ def test_the_bench_records_with_the_input_files_as_plvo_viz_does(kitti_root, tmp
     files = seen["info"].extra["input_files"]
     assert files == input_files(open_dataset(kitti_root, "04", range(3))) and len(files) == 3
     assert all(f.endswith(".png") and s.endswith(".bin") for f, s in files.values())
+
+
+def test_the_ratio_s_interval_says_what_a_bench_resolves():
+    """The geometric mean of the run-by-run ratios with a bootstrap interval: none from fewer than 3 runs, a point
+    where every run agrees, and narrower the more runs there are of the same spread."""
+    import numpy as np
+
+    from plvo.eval.bench import ratio_interval
+
+    assert ratio_interval([0.9, 1.1]) is None
+    same = ratio_interval([0.9] * 7)
+    assert same == {"geomean": 0.9, "low": 0.9, "high": 0.9, "level": 0.9}
+    spread = list(0.9 * np.exp(np.linspace(-0.15, 0.15, 21)))
+    few, many = ratio_interval(spread), ratio_interval(spread * 4)
+    assert few["geomean"] == many["geomean"] == 0.9
+    assert few["low"] < many["low"] < 0.9 < many["high"] < few["high"]
+    assert ratio_interval(spread) == few  # the same runs, the same figures
