@@ -7,6 +7,7 @@ These check the bench's bookkeeping on a few frames, never the speed itself (the
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -294,3 +295,16 @@ def test_the_ratio_s_interval_says_what_a_bench_resolves():
     assert few["geomean"] == many["geomean"] == 0.9
     assert few["low"] < many["low"] < 0.9 < many["high"] < few["high"]
     assert ratio_interval(spread) == few  # the same runs, the same figures
+
+
+def test_the_bench_table_gives_the_ratio_s_interval():
+    """The summary printed after a bench carries the interval, here for a committed bench's 21 runs (their ratios
+    are in the file; the interval was added to the report after it was written)."""
+    from plvo.eval.bench import ratio_interval
+
+    report = json.loads((Path(__file__).parents[1] / "docs/results/bench/04_252c0a2_21.json").read_text())
+    dep = report["deployed"]
+    dep["ratio_to_kiss_icp_interval"] = ratio_interval(dep["ratio_to_kiss_icp_runs"])
+    text = cmd_bench.format_table(report)
+    assert "ratio, run by run, median 0.88 (medians of 21 runs)" in text
+    assert "ratio's geometric mean 0.887, 90 % bootstrap interval 0.856-0.919" in text
