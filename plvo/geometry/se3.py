@@ -28,18 +28,26 @@ def _series(theta: float) -> tuple[float, float, float]:
     return np.sin(theta) / theta, (1.0 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
 
 
-def _so3_exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3,) rotation vector -> its rotation (3,3) (Rodrigues) and left Jacobian (3,3), from one series and one hat:
-    `exp` needs both, and the bundle adjustment calls it for every free pose of every step."""
+def _so3_terms(phi: np.ndarray) -> tuple[float, float, float, np.ndarray]:
+    """(3,) rotation vector -> its series (a, b, c) and hat W, from which the rotation (_rodrigues) and the left
+    Jacobian (_left) are made: `exp` needs both from one series and one hat (the bundle adjustment calls it for every
+    free pose of every step), so3_exp and _left_jacobian one each."""
     phi = np.asarray(phi, dtype=float)
-    a, b, c = _series(float(np.linalg.norm(phi)))
-    W = hat(phi)
-    return np.eye(3) + a * W + b * W @ W, np.eye(3) + b * W + c * W @ W
+    return (*_series(float(np.linalg.norm(phi))), hat(phi))
+
+
+def _rodrigues(a: float, b: float, W: np.ndarray) -> np.ndarray:
+    return np.eye(3) + a * W + b * W @ W
+
+
+def _left(b: float, c: float, W: np.ndarray) -> np.ndarray:
+    return np.eye(3) + b * W + c * W @ W
 
 
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     """(3,) rotation vector -> (3,3) rotation matrix (Rodrigues)."""
-    return _so3_exp_and_left_jacobian(phi)[0]
+    a, b, _, W = _so3_terms(phi)
+    return _rodrigues(a, b, W)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -63,7 +71,8 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    return _so3_exp_and_left_jacobian(phi)[1]
+    _, b, c, W = _so3_terms(phi)
+    return _left(b, c, W)
 
 
 def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
@@ -81,10 +90,10 @@ def _left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
 def exp(xi: np.ndarray) -> np.ndarray:
     """(6,) tangent (rho, phi) -> (4,4) pose."""
     xi = np.asarray(xi, dtype=float)
-    R, V = _so3_exp_and_left_jacobian(xi[3:])
+    a, b, c, W = _so3_terms(xi[3:])
     T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = V @ xi[:3]
+    T[:3, :3] = _rodrigues(a, b, W)
+    T[:3, 3] = _left(b, c, W) @ xi[:3]
     return T
 
 
