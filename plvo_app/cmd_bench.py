@@ -32,7 +32,7 @@ from pathlib import Path
 
 from plvo import provenance
 from plvo.atomic import write_text_atomic
-from plvo.config import config_to_dict, config_to_toml, load_config
+from plvo.config import config_to_dict, load_config
 from plvo.errors import DatasetError, OutputError
 from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
 from plvo.recording import RunInfo
@@ -142,8 +142,7 @@ class Reopen:
 
 
 def run(args: argparse.Namespace) -> int:
-    from plvo_app.cmd_viz import git_revision, plvo_version
-    from plvo_app.run_identity import input_files
+    from plvo_app.cmd_viz import run_info
 
     stages = parse_stages(args.stages)  # bad arguments fail before any work
     if args.out is not None and args.out.is_dir():
@@ -153,12 +152,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or Path("results") / "bench" / f"{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
     machine = machine_info()
     command = shlex.join(sys.argv)
-    info = RunInfo(name="bench", sequence=dataset.sequence, calib=dataset.calib,
-                   frame_indices=dataset.frame_indices, gt_T_world_cam=dataset.gt_T_world_cam,
-                   config=config_to_dict(cfg), version=plvo_version(), git_revision=git_revision(),
-                   command_line=command,
-                   # the input files too, so that the recorder digests each frame's files as it does in plvo-viz
-                   extra={"config_toml": config_to_toml(cfg), "input_files": input_files(dataset)})
+    info = run_info("bench", dataset, cfg, command)
     if args.soak:
         return _soak(args, cfg, dataset, info, machine, command)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:

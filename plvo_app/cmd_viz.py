@@ -92,6 +92,20 @@ def plvo_version() -> str:
         return "unknown"
 
 
+def run_info(name: str, dataset, cfg: SystemConfig, command_line: str, /, **extra) -> RunInfo:
+    """What the recorders are told of a run: the dataset's sequence, calibration, frames and truth, the config (as
+    TOML too), this plvo's version and revision, and the input files, whose digests the recorder keeps frame by frame
+    (plvo-viz's and the bench's recorded runs alike); `extra` adds entries (positional parameters above, since
+    plvo-viz adds one named "dataset": the source's identity)."""
+    from plvo_app.run_identity import input_files
+
+    return RunInfo(
+        name=name, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
+        gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
+        git_revision=git_revision(), command_line=command_line,
+        extra={"config_toml": config_to_toml(cfg), **extra, "input_files": input_files(dataset)})
+
+
 def _resolve_config(args: argparse.Namespace) -> SystemConfig:
     cfg = load_config(args.config)
     return with_ablation(cfg, args.ablation) if args.ablation else cfg
@@ -240,7 +254,6 @@ def run(args: argparse.Namespace) -> int:
         return view(args.replay, port=args.port, serve=serve)
     from plvo.system import System
     from plvo_app.rerun_recorder import RerunRecorder
-    from plvo_app.run_identity import input_files
 
     cfg = _resolve_config(args)
     options = recorder_options(args)
@@ -265,11 +278,7 @@ def run(args: argparse.Namespace) -> int:
     system = None
     try:
         system = System(cfg, FanOut([]), calib=dataset.calib)
-        info = RunInfo(
-            name=outs.run, sequence=dataset.sequence, calib=dataset.calib, frame_indices=dataset.frame_indices,
-            gt_T_world_cam=dataset.gt_T_world_cam, config=config_to_dict(cfg), version=plvo_version(),
-            git_revision=git_revision(), command_line=shlex.join(["plvo-viz", *sys.argv[1:]]),
-            extra={"config_toml": config_to_toml(cfg), "dataset": identity, "input_files": input_files(dataset)})
+        info = run_info(outs.run, dataset, cfg, shlex.join(["plvo-viz", *sys.argv[1:]]), dataset=identity)
     except BaseException:
         if system is not None:
             system.close()
