@@ -87,6 +87,7 @@ RANGES: dict[str, Range] = {
     "depth.adapt_max_ratio": Range(1.0),
     "backend.iterations": COUNT, "backend.outlier_px": NON_NEGATIVE, "backend.max_lag_frames": COUNT0,
     "backend.local_map_keyframes": COUNT, "backend.local_map_voxel_m": POSITIVE,
+    "backend.local_map_source_points": Range(100),
     "backend.worker_timeout_s": POSITIVE,
     "loop.min_keyframe_gap": COUNT0, "loop.min_score": NON_NEGATIVE, "loop.consistency": COUNT,
     "loop.min_inliers": Range(4), "loop.min_neighbour_score": NON_NEGATIVE, "loop.neighbours": COUNT,

@@ -127,3 +127,25 @@ def test_a_guess_the_registration_has_to_move_far_is_checked_against_the_predict
     assert len(starts) == 2 and al.converged
     t_err, r_err = _error(al.T_world_lidar, truth)
     assert t_err < 0.03 and r_err < 0.05, (t_err, r_err)
+
+
+def test_an_alignment_uses_at_most_max_source_points_and_still_recovers_the_motion(town, monkeypatch):
+    from plvo.lidar import local_map
+
+    poses, scans, cfg = town
+    lmap = LocalMap(8, 0.5, cfg, max_source_points=300)
+    for k in range(8):
+        lmap.add(k, np.asarray(scans[k].fine.points), poses[k])
+    used = []
+    icp = local_map._icp
+    monkeypatch.setattr(local_map, "_icp", lambda src, *rest: (used.append(len(src)), icp(src, *rest))[1])
+    source = np.asarray(scans[8].cloud.points)
+    assert len(source) > 300
+    truth = poses[8]
+    al = lmap.align(source, truth @ se3.exp(np.array([0.4, -0.3, 0.05, 0.0, 0.0, np.radians(2.0)])))
+    assert used == [300]
+    assert al.converged, al.why
+    t_err, r_err = _error(al.T_world_lidar, truth)
+    assert t_err < 0.05 and r_err < 0.1, f"{t_err:.3f} m, {r_err:.3f} deg from the truth with 300 source points"
+    with pytest.raises(PlvoError, match="max_source_points"):
+        LocalMap(8, 0.5, cfg, max_source_points=5)

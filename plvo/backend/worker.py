@@ -108,7 +108,8 @@ class BackendCore:
         self._answered: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._frame_of: dict[int, int] = {}  # the window keyframes' frame indices (for the lidar's own prediction)
         b = config.backend
-        self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration) \
+        self._local_map = LocalMap(b.local_map_keyframes, b.local_map_voxel_m, config.registration,
+                                   b.local_map_source_points) \
             if b.lidar_target == "local_map" else None
 
     def idle(self) -> None:

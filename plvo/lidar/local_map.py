@@ -39,9 +39,6 @@ from plvo.lidar.registration import zeta_from_errors
 
 _REG = o3d.pipelines.registration
 _NORMAL_NEIGHBOURS = 10  # as plvo.lidar.registration's targets
-# Source points an alignment uses at most: a KITTI-sized scan at the 0.6 m registration voxel has 5-9k; 4000 spread
-# over it fix the pose as well at half the cost of the larger ones.
-_MAX_SOURCE_POINTS = 4000
 # A converged ICP barely moves when given one more Gauss-Newton step (plvo.lidar.registration's bounds for NDT).
 _SETTLED_M, _SETTLED_DEG = 0.02, 0.1
 # How far the registration may move the tracker's pose before another start is tried (align_best): on development
@@ -91,12 +88,16 @@ class _Entry:
 
 
 class LocalMap:
-    """The scans of the last `max_keyframes` keyframes (see the module doc); voxel_m is the map's resolution."""
+    """The scans of the last `max_keyframes` keyframes (see the module doc); voxel_m is the map's resolution;
+    max_source_points: an alignment's source points at most, evenly thinned (BackendConfig.local_map_source_points)."""
 
-    def __init__(self, max_keyframes: int, voxel_m: float, cfg: RegistrationConfig | None = None):
-        if max_keyframes < 1 or not voxel_m > 0:
-            raise PlvoError(f"local map: max_keyframes must be >= 1 and voxel_m > 0, got {max_keyframes}, {voxel_m}")
+    def __init__(self, max_keyframes: int, voxel_m: float, cfg: RegistrationConfig | None = None,
+                 max_source_points: int = 4000):
+        if max_keyframes < 1 or not voxel_m > 0 or max_source_points < 6:
+            raise PlvoError(f"local map: max_keyframes must be >= 1, voxel_m > 0 and max_source_points >= 6, got "
+                            f"{max_keyframes}, {voxel_m}, {max_source_points}")
         self.max_keyframes, self.voxel_m = int(max_keyframes), float(voxel_m)
+        self.max_source_points = int(max_source_points)
         self.cfg = cfg or RegistrationConfig()
         self._entries: list[_Entry] = []
         self._built: tuple[o3d.geometry.PointCloud, cKDTree] | None = None
@@ -174,8 +175,8 @@ class LocalMap:
         if init.shape != (4, 4) or not np.all(np.isfinite(init)):
             raise PlvoError(f"local map: T_world_lidar_init must be a finite (4,4) matrix, got shape {init.shape}")
         src = np.asarray(source, float)[:, :3]
-        if len(src) > _MAX_SOURCE_POINTS:  # evenly thinned: an ICP iteration costs by the source point
-            src = src[np.linspace(0, len(src) - 1, _MAX_SOURCE_POINTS).astype(int)]
+        if len(src) > self.max_source_points:  # evenly thinned: an ICP iteration costs by the source point
+            src = src[np.linspace(0, len(src) - 1, self.max_source_points).astype(int)]
         target, tree = self._build()
         cfg = self.cfg
         T, why = init, ""
