@@ -1,6 +1,6 @@
 """The local map of recent keyframe scans (plvo.lidar.local_map): a scan registered to it recovers a known motion
-from a guess that is off, the map follows the poses it is given, keeps the last keyframes only, and says when an
-alignment failed."""
+from a guess that is off (also from a few hundred source points), the map follows the poses it is given, keeps the
+last keyframes only, and says when an alignment failed."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from plvo.config import RegistrationConfig
 from plvo.data.kitti import KittiOdometry
 from plvo.errors import PlvoError
 from plvo.geometry import se3
+from plvo.lidar import local_map
 from plvo.lidar.local_map import LocalMap
 from plvo.lidar.registration import prepare
 
@@ -130,8 +131,6 @@ def test_a_guess_the_registration_has_to_move_far_is_checked_against_the_predict
 
 
 def test_an_alignment_uses_at_most_max_source_points_and_still_recovers_the_motion(town, monkeypatch):
-    from plvo.lidar import local_map
-
     poses, scans, cfg = town
     lmap = LocalMap(8, 0.5, cfg, max_source_points=300)
     for k in range(8):
