@@ -32,7 +32,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from plvo.config import RegistrationConfig
+from plvo.config import BackendConfig, RegistrationConfig
 from plvo.errors import PlvoError
 from plvo.geometry import se3
 from plvo.lidar.registration import zeta_from_errors
@@ -92,7 +92,7 @@ class LocalMap:
     max_source_points: an alignment's source points at most, evenly thinned (BackendConfig.local_map_source_points)."""
 
     def __init__(self, max_keyframes: int, voxel_m: float, cfg: RegistrationConfig | None = None,
-                 max_source_points: int = 4000):
+                 max_source_points: int = BackendConfig.local_map_source_points):
         if max_keyframes < 1 or not voxel_m > 0 or max_source_points < 6:
             raise PlvoError(f"local map: max_keyframes must be >= 1, voxel_m > 0 and max_source_points >= 6, got "
                             f"{max_keyframes}, {voxel_m}, {max_source_points}")
