@@ -34,6 +34,7 @@ class OrbConfig:
 @dataclass(frozen=True)
 class LineConfig:
     min_length_px: float = 50.0  # paper, III: segments under 50 px are discarded
+    # The repair's distances (px) hold for lsd_scale 0.5 and finer; below it they grow by 0.5 / lsd_scale.
     chain_endpoint_px: float = 10.0  # endpoints this close may be chained
     chain_angle_deg: float = 3.0  # chained segments must be this collinear
     chain_offset_px: float = 1.5  # and lie this close to each other's supporting line

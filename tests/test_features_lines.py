@@ -11,7 +11,7 @@ import pytest
 from plvo.config import LineConfig
 from plvo.errors import PlvoError
 from plvo.features.lbd import compute_lbd
-from plvo.features.lines import detect_lines, detect_lsd, repair_segments, segment_lengths
+from plvo.features.lines import detect_lines, detect_lsd, repair_segments, repair_tolerances, segment_lengths
 
 W, H = 1241, 376
 SS = 4  # supersampling of the drawings
@@ -68,38 +68,71 @@ def oriented_like(seg: np.ndarray, p0, p1) -> np.ndarray:
 EDGES = [((150.0, 120.3), (1050.0, 210.7)), ((120.0, 95.0), (980.0, 40.5)), ((200.0, 300.2), (1100.0, 300.9))]
 
 
+@pytest.mark.parametrize("scale,width", [(0.5, 5.0), (0.4, 8.0)])  # occluders LSD does not see through
 @pytest.mark.parametrize("p0,p1", EDGES)
-def test_broken_edge_comes_back_as_one_segment(p0, p1):
-    cfg = LineConfig()
+def test_broken_edge_comes_back_as_one_segment(p0, p1, scale, width):
+    """Six occluders break each edge; the repair joins the pieces, at the default LSD scale and at a coarser one
+    (whose repair distances grow with LSD's pixel, repair_tolerances). Distances below are for LSD at 0.5, grown
+    alike: LSD's pixel is 1 / scale of the image's."""
+    cfg = dataclasses.replace(LineConfig(), lsd_scale=scale)
+    g = 0.5 / scale
     at = [0.12, 0.27, 0.41, 0.58, 0.73, 0.88]
     clean = draw([(bar(p0, p1, 40), 200)])
-    broken = draw([(bar(p0, p1, 40), 200)] + occluders(p0, p1, at, 5.0, 120))
+    broken = draw([(bar(p0, p1, 40), 200)] + occluders(p0, p1, at, width, 120))
 
     raw = detect_lsd(broken, cfg)
-    pieces = raw[on_line(raw, p0, p1, 1.5) & (segment_lengths(raw) > 20)]
+    pieces = raw[on_line(raw, p0, p1, 1.5 * g) & (segment_lengths(raw) > 20)]
     assert len(pieces) >= 3, "the occluders must break LSD's edge for this test to mean anything"
 
     out = repair_segments(raw, cfg)
-    hits = np.flatnonzero(on_line(out.segments, p0, p1, 1.0))
+    hits = np.flatnonzero(on_line(out.segments, p0, p1, 1.0 * g))
     assert len(hits) == 1, f"expected one segment on the edge, got {len(hits)}"
     k = hits[0]
     assert len(out.sources[k]) >= len(pieces)
     # the sources are raw segments on that edge
-    assert np.all(on_line(raw[out.sources[k]], p0, p1, 1.5))
+    assert np.all(on_line(raw[out.sources[k]], p0, p1, 1.5 * g))
 
-    # same as LSD on the unbroken edge, within 1 px
+    # same as LSD on the unbroken edge, within 1 px (at 0.5)
     ref = detect_lines(clean, cfg)
-    ref_k = np.flatnonzero(on_line(ref.segments, p0, p1, 1.0))
+    ref_k = np.flatnonzero(on_line(ref.segments, p0, p1, 1.0 * g))
     assert len(ref_k) == 1
     got, want = oriented_like(out.segments[k], p0, p1), oriented_like(ref.segments[ref_k[0]], p0, p1)
-    assert np.max(np.linalg.norm(got - want, axis=1)) < 1.0
+    assert np.max(np.linalg.norm(got - want, axis=1)) < 1.0 * g
     # and on the drawn edge: sub-pixel across it; along it LSD itself stops short of a corner by up to
-    # 1 px of its half-resolution image (measured 0.6-2.5 px at lsd_scale 0.5)
+    # 1 px of its own image (measured 0.6-2.5 px at lsd_scale 0.5)
     truth = np.array([p0, p1])
     u = (truth[1] - truth[0]) / np.linalg.norm(truth[1] - truth[0])
     n = np.array([-u[1], u[0]])
-    assert np.max(np.abs((got - truth) @ n)) < 0.3
-    assert np.max(np.abs((got - truth) @ u)) < 3.0
+    assert np.max(np.abs((got - truth) @ n)) < 0.3 * g
+    assert np.max(np.abs((got - truth) @ u)) < 3.0 * g
+
+
+@pytest.mark.parametrize("p0,p1", EDGES)
+def test_broken_edge_is_joined_at_lsd_scale_035(p0, p1):
+    """At LSD scale 0.35 the pieces lie up to ~2 px off each other's line: with the distances set for 0.5 an edge
+    stays in pieces; grown with LSD's pixel (repair_tolerances) each edge is one segment again, made of all its
+    pieces and on the drawn line. (Its ends are LSD's: up to 8 px short of a corner at this scale, measured.)"""
+    cfg = dataclasses.replace(LineConfig(), lsd_scale=0.35)
+    assert repair_tolerances(cfg).chain_offset_px > cfg.chain_offset_px
+    broken = draw([(bar(p0, p1, 40), 200)] + occluders(p0, p1, [0.12, 0.27, 0.41, 0.58, 0.73, 0.88], 7.0, 120))
+    raw = detect_lsd(broken, cfg)
+    pieces = on_line(raw, p0, p1, 2.0) & (segment_lengths(raw) > 20)
+    assert pieces.sum() >= 3, "the occluders must break LSD's edge for this test to mean anything"
+    out = repair_segments(raw, cfg)
+    hits = np.flatnonzero(on_line(out.segments, p0, p1, 1.0))
+    assert len(hits) == 1, f"expected one segment on the edge, got {len(hits)}"
+    assert set(np.flatnonzero(pieces)) <= set(out.sources[hits[0]].tolist())
+
+
+def test_repair_distances_hold_at_lsd_scale_05_and_finer():
+    """The defaults' repair is the configured one, bit for bit: the distances grow only below LSD scale 0.5."""
+    for scale in (0.5, 1.0):
+        cfg = dataclasses.replace(LineConfig(), lsd_scale=scale)
+        assert repair_tolerances(cfg) is cfg
+    cfg = dataclasses.replace(LineConfig(), lsd_scale=0.25)
+    grown = repair_tolerances(cfg)
+    assert (grown.chain_offset_px, grown.chain_endpoint_px, grown.merge_distance_px) == (
+        2 * cfg.chain_offset_px, 2 * cfg.chain_endpoint_px, 2 * cfg.merge_distance_px)
 
 
 def test_chaining_restores_a_long_edge_at_full_resolution():

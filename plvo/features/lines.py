@@ -10,6 +10,8 @@ A pair (A longer, B shorter, angle between them under the threshold) may be comb
   along that line is under `chain_endpoint_px` (one endpoint near the other's), or
 - merging: both endpoints of B lie within `merge_distance_px` of A's line and B overlaps A along the line by at
   least `merge_overlap` of B's length (both endpoints near the other's: a double edge of a thin structure).
+The three distances are image pixels for LSD at 0.5 or finer; below that they grow with LSD's pixel
+(`repair_tolerances`).
 A group's segment is the total-least-squares line through its members' endpoints, each weighted by its member's
 length, spanning the members' extent, oriented like its longest member (LSD's orientation follows the gradient's
 polarity, which LBD needs).
@@ -17,6 +19,7 @@ polarity, which LBD needs).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from dataclasses import dataclass
@@ -162,9 +165,28 @@ def fit_groups(raw: np.ndarray, label: np.ndarray, n_groups: int) -> np.ndarray:
     return np.stack([cx + tmin * ux, cy + tmin * uy, cx + tmax * ux, cy + tmax * uy], axis=1)
 
 
+# The repair's distances are set for LSD at this scale or finer (KITTI at 0.5, the drawings of the tests at 0.5 and 1).
+_TOLERANCE_SCALE = 0.5
+
+
+def repair_tolerances(cfg: LineConfig) -> LineConfig:
+    """cfg with the repair's distances (chain_offset_px, chain_endpoint_px, merge_distance_px) for its LSD scale:
+    as given at lsd_scale 0.5 and finer, grown by 0.5 / lsd_scale below it. LSD places a segment to a fraction of its
+    own pixel, which spans 1 / lsd_scale of the image's: at 0.35 the pieces of an edge broken by occluders lie up to
+    ~2 px off each other's line, beyond chain_offset_px, and the edge stays in pieces (tests/test_features_lines.py)."""
+    if cfg.lsd_scale >= _TOLERANCE_SCALE:
+        return cfg
+    grow = _TOLERANCE_SCALE / cfg.lsd_scale
+    return dataclasses.replace(cfg, chain_offset_px=cfg.chain_offset_px * grow,
+                               chain_endpoint_px=cfg.chain_endpoint_px * grow,
+                               merge_distance_px=cfg.merge_distance_px * grow)
+
+
 def repair_segments(raw: np.ndarray, cfg: LineConfig) -> LineSegments:
-    """Chain and merge raw (R,4) LSD segments until stable; keep those >= min_length_px, longest first."""
+    """Chain and merge raw (R,4) LSD segments until stable; keep those >= min_length_px, longest first. The
+    distances are cfg's for its LSD scale (repair_tolerances)."""
     raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
+    cfg = repair_tolerances(cfg)
     kept = np.flatnonzero(segment_lengths(raw) >= cfg.raw_min_length_px)
     sub = raw[kept]
     label = np.arange(len(sub))
