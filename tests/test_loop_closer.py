@@ -273,3 +273,28 @@ def test_candidates_the_odometry_puts_far_away_are_refused_before_verification()
     for i, T in enumerate(ring):
         lap._store(LoopKeyframe(i, T, *empty))
     assert lap._too_far(38, 0) == ""  # 190 m driven, back within 5 m of the start
+
+
+def test_a_registered_edge_without_a_near_view_is_refused_and_logged(monkeypatch, caplog):
+    """A registration that succeeds (its log says "registered") but joins keyframes 30 m apart, with no keyframe near
+    the candidate within loop.scan_max_edge_m of the query, is refused: the closer says so in the log as well, so
+    that a run's log tells what became of every registered candidate."""
+    import logging
+
+    import plvo.loop.closer as closer_module
+    from plvo.loop.verification import Verification
+
+    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=LoopConfig())
+    empty = np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
+    street = [se3.exp(np.array([0.0, 0.0, 5.0 * i, 0.0, 0.0, 0.0])) for i in range(40)]  # along z, 5 m apart
+    for i, T in enumerate(street):
+        closer._store(LoopKeyframe(i, T, *empty))
+    aside = se3.exp(np.array([30.0, 0.0, 0.0, 0.0, 0.0, 0.0]))  # the query 30 m to the side of keyframe 2
+    monkeypatch.setattr(closer, "_local_map", lambda kf_id: np.zeros((0, 3)))
+    monkeypatch.setattr(closer_module, "verify_by_registration", lambda q, c, *a, **k: Verification(
+        q, c, True, aside, 0, 0, 0, 0, True, 0.9, "scan registration: overlap 0.90", 0.0, "bow"))
+    with caplog.at_level(logging.INFO, logger="plvo.loop.closer"):
+        v = closer._register(39, 2, aside, "bow", 0)
+    assert not v.accepted and "30.0 m apart" in v.reason and "no keyframe near the candidate" in v.reason
+    assert any("candidate 2 (bow) for keyframe 39 rejected" in r.getMessage() and "30.0 m apart" in r.getMessage()
+               for r in caplog.records)

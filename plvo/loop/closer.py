@@ -106,6 +106,13 @@ def compact_keyframe(kf: LoopKeyframe) -> LoopKeyframe:
                                                                                               np.float32)[ln])
 
 
+def _refused(v: Verification, reason: str) -> Verification:
+    """A registration's verification (its log said "registered") refused after all, for reason: logged as every
+    other refusal, so that a run's log says what became of each candidate."""
+    log.info("loop candidate %d (%s) for keyframe %d rejected: %s", v.cand_id, v.detector, v.query_id, reason)
+    return dataclasses.replace(v, accepted=False, T_cand_query=np.eye(4), stage=REGISTRATION, reason=reason)
+
+
 def optimize_pose_graph(poses: np.ndarray, odometry: list[tuple[int, int, np.ndarray]],
                         loops: list[tuple[int, int, np.ndarray]], cfg: LoopConfig) -> np.ndarray:
     """(K,4,4) initial T_world_cam, edges (i, j, T_i_j) by index into poses -> (K,4,4) optimised; pose 0 fixed."""
@@ -346,16 +353,15 @@ class LoopCloser:
         apart = float(np.linalg.norm(v.T_cand_query[:3, 3]))
         nearest, T_n = self._nearest_neighbour(query_id, cid, v.T_cand_query)
         if nearest is None:
-            return dataclasses.replace(v, accepted=False, T_cand_query=np.eye(4), stage=REGISTRATION, reason=(
-                f"{v.reason}; but the keyframes are {apart:.1f} m apart and no keyframe near the candidate is within "
-                f"{self.cfg.scan_max_edge_m:.0f} m of the query (a loop edge joins two views of one place)"))
+            return _refused(v, f"{v.reason}; but the keyframes are {apart:.1f} m apart and no keyframe near the "
+                               f"candidate is within {self.cfg.scan_max_edge_m:.0f} m of the query (a loop edge joins "
+                               f"two views of one place)")
         first = v.alignment.summary() if v.alignment is not None else ""
         w = register(nearest, T_n, f"{prefix}registered {apart:.1f} m away ({first}), handed to its neighbour "
                                    f"{nearest}: ")
         if w.accepted and np.linalg.norm(w.T_cand_query[:3, 3]) > self.cfg.scan_max_edge_m:
-            return dataclasses.replace(w, accepted=False, T_cand_query=np.eye(4), stage=REGISTRATION,
-                                       reason=f"{w.reason}; but it is {np.linalg.norm(w.T_cand_query[:3, 3]):.1f} m "
-                                              f"away (at most {self.cfg.scan_max_edge_m:.0f} m)")
+            return _refused(w, f"{w.reason}; but it is {np.linalg.norm(w.T_cand_query[:3, 3]):.1f} m away (at most "
+                               f"{self.cfg.scan_max_edge_m:.0f} m)")
         return w
 
     def _nearest_neighbour(self, query_id: int, cid: int, T_cand_query: np.ndarray
