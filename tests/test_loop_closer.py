@@ -298,3 +298,37 @@ def test_a_registered_edge_without_a_near_view_is_refused_and_logged(monkeypatch
     assert not v.accepted and "30.0 m apart" in v.reason and "no keyframe near the candidate" in v.reason
     assert any("candidate 2 (bow) for keyframe 39 rejected" in r.getMessage() and "30.0 m apart" in r.getMessage()
                for r in caplog.records)
+
+
+def test_an_edge_beyond_the_view_bound_is_handed_to_the_candidates_neighbour(monkeypatch):
+    """A street driven out and back: the query's bag-of-words candidate is the keyframe 45 m behind the place, and
+    its local maps register (the edge 45 m long, beyond loop.max_view_m 40). The edge goes to the candidate's
+    neighbour that saw the query's place (0 m away) and is accepted there; held to the view bound before the hand-off,
+    the revisit was refused. The registration is stood in for by one that returns the pose it starts from and
+    applies the closer's odometry check, as verify_by_registration does."""
+    import plvo.loop.closer as closer_module
+    from plvo.loop.verification import Verification
+
+    cfg = LoopConfig()
+    closer = LoopCloser(K, orb_vocab=object(), lbd_vocab=object(), cfg=cfg)
+    empty = np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
+    out = [5.0 * i for i in range(40)]  # 0 .. 195 m along z
+    back = [195.0 - 5.0 * (i - 39) for i in range(40, 70)]  # and back to 45 m
+    for i, z in enumerate(out + back):
+        closer._store(LoopKeyframe(i, se3.exp(np.array([0.0, 0.0, z, 0.0, 0.0, 0.0])), *empty))
+    calls = []
+
+    def registration(q, c, query_map, cand_map, T, cfg_, T_cam_velo, against, *args, **kwargs):
+        calls.append((c, float(np.linalg.norm(T[:3, 3]))))
+        why = against(T)
+        return Verification(q, c, not why, T if not why else np.eye(4), 0, 0, 0, 0, True, 0.9, why or "registered",
+                            0.0, "bow")
+
+    monkeypatch.setattr(closer, "_local_map", lambda kf_id: np.zeros((0, 3)))
+    monkeypatch.setattr(closer_module, "verify_by_registration", registration)
+    first = se3.exp(np.array([0.0, 0.0, 45.0, 0.0, 0.0, 0.0]))  # the query seen 45 m ahead of keyframe 0
+    assert 45.0 > cfg.max_view_m > cfg.scan_max_edge_m
+    v = closer._register(69, 0, first, "bow", 0)
+    assert v.accepted, v.reason
+    assert v.cand_id == 9 and np.linalg.norm(v.T_cand_query[:3, 3]) < 1e-9  # keyframe 9 stands where the query is
+    assert calls == [(0, 45.0), (9, pytest.approx(0.0, abs=1e-9))]
