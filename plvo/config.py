@@ -42,7 +42,10 @@ class LineConfig:
     merge_angle_deg: float = 3.0
     merge_overlap: float = 0.5  # fraction of the shorter segment that must overlap the longer
     max_iterations: int = 10  # repeat chaining and merging until stable, at most this often
-    lsd_scale: float = 0.5  # LSD on the image downsampled by 2: 20-25 ms instead of 55-65 on KITTI frames
+    # LSD on the image downsampled to 0.35: two thirds of its CPU at 0.5 on KITTI 04 (12 against 18 ms a frame,
+    # measured alone; 55-65 ms at 1), the repair's distances grown with LSD's pixel. Chosen with the cheaper back end
+    # for plvo's speed against KISS-ICP's on KITTI 04, on the development set (docs/results/faster_config/)
+    lsd_scale: float = 0.35
     max_lines: int = 300  # keep the longest segments when more are found
     lsd_refine: bool = True  # OpenCV's LSD_REFINE_STD (else LSD_REFINE_NONE)
     raw_min_length_px: float = 8.0  # raw LSD segments shorter than this take no part in the repair
@@ -181,7 +184,9 @@ class BackendConfig:
     stereo_baseline_m: float = 0.54
     huber_point: float = 2.0
     huber_line: float = 2.0
-    iterations: int = 5  # as good a window as 10 at half the time (docs/results/defaults.md)
+    # 5 gave as good a window as 10 at half the time (docs/results/defaults.md), 3 as good as 5 on the development
+    # set (docs/results/cheaper_backend/)
+    iterations: int = 3
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
@@ -207,8 +212,9 @@ class BackendConfig:
     local_map_voxel_m: float = 0.5
     # Source points a map alignment uses at most, evenly thinned from the keyframe's registration cloud (an ICP
     # iteration costs by the source point): a KITTI-sized scan has 5-9k at the 0.6 m registration voxel, and 4000
-    # fix the pose as well as all of them; a denser lidar's scans are thinned to the same cost.
-    local_map_source_points: int = 4000
+    # fix the pose as well as all of them (2000 as well on the development set, docs/results/cheaper_backend/); a
+    # denser lidar's scans are thinned to the same cost.
+    local_map_source_points: int = 2000
 
 
 @dataclass(frozen=True)
@@ -285,8 +291,10 @@ class LoopConfig:
     scan_max_error_m: float = 0.15
     # Smallest eigenvalue of the point-to-plane Hessian per point (rotations at a 10 m lever): true revisits
     # 0.028-0.137 on twins and town, other places lined up (a street slid along itself, the town's look-alike
-    # streets) 0.002-0.034, a corridor ~0; scan_unique_m refuses those above it.
-    scan_min_constraint: float = 0.03
+    # streets) 0.002-0.034, a corridor ~0. Above this floor the restarts decide (scan_unique_m): twin 09's long
+    # straight first street, revisited, had 0.012-0.024 and came back within 0.01-0.02 m where the places lined up
+    # ended 0.47-3.99 m away (docs/results/faster_config/); below it (the corridor) nothing is registered.
+    scan_min_constraint: float = 0.005
     # ICP restarted this far to either side along the least constrained direction must come back within
     # scan_unique_m: true revisits came back within 0.00-0.11 m, other places lined up ended 0.47-7.4 m away.
     scan_basin_m: float = 3.0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -36,14 +38,24 @@ def town(synth_seq):
     return K, T, edges, frame
 
 
-def test_repair_against_true_edges(town):
+# The repaired segments' precision and recall at least, by LSD scale. Measured on FRAMES of the 20-frame seed-0
+# town: at 0.5 precision 0.442 and recall 0.400, at 0.35 (the default) 0.389 and 0.369 (LSD's long segments alone:
+# 0.447 / 0.351 and 0.430 / 0.350). A coarser LSD places a segment less exactly (to a fraction of its pixel, 2.9 image
+# pixels at 0.35), and more of its segments then miss the 2 px the measure allows: the price of the default's speed
+# (docs/results/faster_config/).
+REPAIR_FLOORS = {0.5: (0.40, 0.35), 0.35: (0.37, 0.35)}
+
+
+@pytest.mark.parametrize("lsd_scale", sorted(REPAIR_FLOORS))
+def test_repair_against_true_edges(town, lsd_scale):
     """Precision: share of segments lying on a visible true edge; recall: share of visible true edges (>= 50 px)
-    covered. Measured on 6 frames of a seed-0 town: raw LSD (>= 8 px, what enters the repair) precision 0.19,
-    mean length 35 px; raw LSD >= 50 px precision 0.574, recall 0.437, mean 92 px; repaired precision 0.544,
+    covered. Measured on 6 frames of a seed-0 town at LSD 0.5: raw LSD (>= 8 px, what enters the repair) precision
+    0.19, mean length 35 px; raw LSD >= 50 px precision 0.574, recall 0.437, mean 92 px; repaired precision 0.544,
     recall 0.478, mean 100 px. The repair's new segments (chains of short pieces) include straight image
     edges the town's edge list lacks (shadows, foliage), hence the small drop against the filtered raw set."""
+    assert LineConfig().lsd_scale in REPAIR_FLOORS  # the default's lines are held to a floor of their own
     K, T, edges, frame = town
-    cfg = LineConfig()
+    cfg = dataclasses.replace(LineConfig(), lsd_scale=lsd_scale)
     res = {"raw": [], "raw50": [], "rep": []}
     for i in FRAMES:
         img, depth = frame(i)
@@ -59,7 +71,8 @@ def test_repair_against_true_edges(town):
     assert rep[0] >= raw[0]  # precision against what LSD returns
     assert rep[0] >= raw50[0] - 0.05  # and against LSD's long segments alone
     assert rep[1] >= raw50[1]  # recall of the long segments
-    assert rep[0] > 0.4 and rep[1] > 0.35
+    precision, recall = REPAIR_FLOORS[lsd_scale]
+    assert rep[0] > precision and rep[1] > recall, (rep[0], rep[1])
 
 
 def move_segments(seg: np.ndarray, depth: np.ndarray, K: np.ndarray, T10: np.ndarray) -> np.ndarray:
