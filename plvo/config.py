@@ -187,8 +187,9 @@ class BackendConfig:
     stereo_baseline_m: float = 0.54
     huber_point: float = 2.0
     huber_line: float = 2.0
-    # 5 gave as good a window as 10 at half the time (docs/results/defaults.md), 3 as good as 5 on the development
-    # set (docs/results/cheaper_backend/)
+    # 5 gave as good a window as 10 at half the time (docs/results/defaults.md), 3 as good as 5 on twins 03 and 04
+    # and real 04 (docs/results/cheaper_backend/), and with the defaults' features on the whole development set
+    # (docs/results/faster_config/)
     iterations: int = 3
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
