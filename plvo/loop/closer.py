@@ -353,9 +353,9 @@ class LoopCloser:
         # a revisit seen from 41-60 m (a bag-of-words neighbour of the place) was refused though a keyframe near the
         # candidate saw it from a few metres (twin 08 at LSD 0.35: 628 -> 45, 1323 -> 868).
         v = register(cid, T_init, prefix, view_bound=False)
-        if not v.accepted or np.linalg.norm(v.T_cand_query[:3, 3]) <= self.cfg.scan_max_edge_m:
-            return v
         apart = float(np.linalg.norm(v.T_cand_query[:3, 3]))
+        if not v.accepted or apart <= self.cfg.scan_max_edge_m:
+            return v
         nearest, T_n = self._nearest_neighbour(query_id, cid, v.T_cand_query)
         if nearest is None:
             return _refused(v, f"{v.reason}; but the keyframes are {apart:.1f} m apart and no keyframe near the "
@@ -364,9 +364,9 @@ class LoopCloser:
         first = v.alignment.summary() if v.alignment is not None else ""
         w = register(nearest, T_n, f"{prefix}registered {apart:.1f} m away ({first}), handed to its neighbour "
                                    f"{nearest}: ")
-        if w.accepted and np.linalg.norm(w.T_cand_query[:3, 3]) > self.cfg.scan_max_edge_m:
-            return _refused(w, f"{w.reason}; but it is {np.linalg.norm(w.T_cand_query[:3, 3]):.1f} m away (at most "
-                               f"{self.cfg.scan_max_edge_m:.0f} m)")
+        handed = float(np.linalg.norm(w.T_cand_query[:3, 3]))
+        if w.accepted and handed > self.cfg.scan_max_edge_m:
+            return _refused(w, f"{w.reason}; but it is {handed:.1f} m away (at most {self.cfg.scan_max_edge_m:.0f} m)")
         return w
 
     def _nearest_neighbour(self, query_id: int, cid: int, T_cand_query: np.ndarray
