@@ -210,17 +210,22 @@ def test_a_corridor_is_refused_as_ambiguous():
     floor = np.stack(np.meshgrid(u, np.arange(-6.0, 6.0, 0.1), [-1.7]), -1).reshape(-1, 3)
     world = np.concatenate([*walls, floor]) + rng.normal(0, 0.01, (1, 3))
     world += rng.normal(0, 0.01, world.shape)
-
-    def seen_from(x: float) -> np.ndarray:
-        from plvo.loop.scans import thin_scan
-
-        pts = (world - [x, 0.0, 0.0]).astype(np.float32)
-        return thin_scan(pts[np.linalg.norm(pts[:, :2], axis=1) < 60.0], 0.5)
-
     truth = se3.exp(np.array([10.0, 0.0, 0.0, 0.0, 0.0, 0.0]))  # the query 10 m ahead of the candidate
-    a = align_maps(seen_from(10.0), seen_from(0.0), _off(truth, 0.5, 0.2, 1.0), LoopConfig())
+    a = align_maps(_seen_from(world, 10.0), _seen_from(world, 0.0), _off(truth, 0.5, 0.2, 1.0), LoopConfig())
     assert not a.accepted and "ambiguous" in a.reason and "x (forward)" in a.reason, a.reason
     assert a.constraint < 0.005 and a.overlap > 0.9  # a perfect fit, in every direction but one
+
+
+def _seen_from(world: np.ndarray, x: float, noise_seed: int | None = None) -> np.ndarray:
+    """The (N,3) world points within 60 m of (x, 0), in a frame at x, thinned as the loop closer's maps are; with
+    noise_seed each point moved by 1 cm noise of its own (another view of the same surfaces)."""
+    from plvo.loop.scans import thin_scan
+
+    pts = world - [x, 0.0, 0.0]
+    if noise_seed is not None:
+        pts = pts + np.random.default_rng(noise_seed).normal(0.0, 0.01, world.shape)
+    pts = pts.astype(np.float32)
+    return thin_scan(pts[np.linalg.norm(pts[:, :2], axis=1) < 60.0], 0.5)
 
 
 def _stepped_street(n_steps: int, seed: int = 0) -> np.ndarray:
@@ -247,16 +252,8 @@ def test_a_weakly_constrained_street_revisited_is_accepted_by_its_restarts():
     own noise): the registration is weakly constrained along the street (constraint 0.018, under the 0.03 floor that
     refused such revisits, twin 09's first street among them), but restarts 3 m to either side come back to it, and
     the edge is right to centimetres. The floor of 0.03 refuses the same pair."""
-    from plvo.loop.scans import thin_scan
-
     world = _stepped_street(16)
-
-    def seen_from(x: float, seed: int) -> np.ndarray:
-        rng = np.random.default_rng(seed)
-        pts = (world - [x, 0.0, 0.0] + rng.normal(0.0, 0.01, world.shape)).astype(np.float32)
-        return thin_scan(pts[np.linalg.norm(pts[:, :2], axis=1) < 60.0], 0.5)
-
-    query, cand = seen_from(10.0, 1), seen_from(0.0, 2)
+    query, cand = _seen_from(world, 10.0, noise_seed=1), _seen_from(world, 0.0, noise_seed=2)
     truth = se3.exp(np.array([10.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
     start = _off(truth, 0.5, 0.2, 1.0)
     a = align_maps(query, cand, start, LoopConfig())
