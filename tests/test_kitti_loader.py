@@ -17,6 +17,7 @@ from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
 from plvo.errors import CalibrationError, DatasetError
 from plvo.geometry import se3
 from plvo.geometry.camera import in_image, project
+from plvo.lidar.deskew import needs_deskew
 
 FX, CX, CY, BASELINE = 100.0, 20.0, 10.0, 0.5
 W, H = 40, 20
@@ -334,6 +335,25 @@ def _oxts_line(east: float, north: float, up: float, yaw: float) -> str:
     return " ".join(repr(v) for v in values) + "\n"
 
 
+FORWARD_NS = (13 * 3600 + 2 * 60 + 25) * 10**9 + 123  # frame 0 faces forward at 13:02:25.000000123
+SWEEP_NS = 103_500_000  # frame k's sweep: 0.1035 s + k * 0.2 ms
+
+
+def _stamp(ns: int) -> str:
+    s, frac = divmod(ns, 10**9)
+    return f"2011-09-26 {s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}.{frac:09d}\n"
+
+
+def write_velodyne_stamps(drive_dir: Path, n: int) -> None:
+    """velodyne_points/timestamps{_start,,_end}.txt: frame k faces forward 0.1 s after frame k-1, mid-sweep."""
+    rows = []
+    for k in range(n):
+        forward, half = FORWARD_NS + k * 100_000_000, (SWEEP_NS + k * 200_000) // 2
+        rows.append((_stamp(forward - half), _stamp(forward), _stamp(forward + half)))
+    for name, column in zip(("timestamps_start.txt", "timestamps.txt", "timestamps_end.txt"), zip(*rows)):
+        (drive_dir / "velodyne_points" / name).write_text("".join(column))
+
+
 def make_raw(root: Path, motion) -> Path:
     """A tiny raw drive; motion = [(east, north, up, yaw), ...] of the IMU, one per frame."""
     date_dir = root / DATE
@@ -353,6 +373,7 @@ def make_raw(root: Path, motion) -> Path:
         (drive_dir / "oxts" / "data" / f"{k:010d}.txt").write_text(_oxts_line(east, north, up, yaw))
         stamps.append(f"2011-09-26 13:02:{25 + k // 10:02d}.{(k % 10) * 100_000_000 + 123:09d}\n")
     (drive_dir / "oxts" / "timestamps.txt").write_text("".join(stamps))
+    write_velodyne_stamps(drive_dir, len(motion))
     return drive_dir
 
 
@@ -398,6 +419,82 @@ def test_raw_bad_data(tmp_path):
         KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
     (tmp_path / DATE / "calib_velo_to_cam.txt").write_text("R: 1 0 0 0 1 0 0 0 1\n")
     with pytest.raises(CalibrationError, match=r"calib_velo_to_cam\.txt: no 'T' matrix"):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+
+
+def _returns_at(azimuth_deg) -> np.ndarray:
+    """(N,4) returns 10 m away at the given azimuths (deg, 0 forward, 90 left), 1 m below the lidar."""
+    a = np.radians(np.asarray(azimuth_deg, dtype=np.float64))
+    return np.c_[10 * np.cos(a), 10 * np.sin(a), -np.ones_like(a), np.zeros_like(a)].astype(np.float32)
+
+
+def test_raw_returns_span_the_recorded_sweep_zero_facing_forward(tmp_path):
+    """A raw drive's scans are raw sweeps: each return's time from its azimuth over its frame's sweep as the velodyne
+    timestamps bound it (clockwise from behind, the frame's time when it faces forward)."""
+    drive = make_raw(tmp_path, MOTION)
+    azimuths = [0.0, 90.0, -90.0, 179.99, -179.99, 45.0]
+    _returns_at(azimuths).tofile(drive / "velodyne_points" / "data" / "0000000002.bin")
+    ds = KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}", frames=slice(1, 4))
+    assert not ds.scans_compensated
+    np.testing.assert_allclose(ds.times, [0.1, 0.2, 0.3], atol=1e-9)  # the forward instants since frame 0's
+    frame = ds[1]  # frame 2, whose sweep is 0.1039 s
+    sweep = (SWEEP_NS + 2 * 200_000) * 1e-9
+    assert not frame.scan_compensated and frame.time == pytest.approx(0.2, abs=1e-9)
+    # clockwise seen from above: the left (90 deg) a quarter sweep before facing forward, behind at either end
+    want = -np.asarray(azimuths) / 360.0 * sweep
+    np.testing.assert_allclose(frame.scan_time, want, atol=1e-7)  # float32 returns: azimuths to ~1e-5 deg
+    assert np.ptp(frame.scan_time) == pytest.approx(sweep, rel=1e-3)  # the whole sweep, not a nominal 0.1 s
+    scan, times = ds.load_timed_scan(1)
+    np.testing.assert_array_equal(scan, frame.scan)
+    np.testing.assert_array_equal(times, frame.scan_time)
+    assert needs_deskew(frame, "auto")  # registration.deskew's default deskews it
+
+
+def _rewrite_line(path: Path, frame: int, text: str) -> None:
+    lines = path.read_text().splitlines()
+    lines[frame] = text
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("name, frame, text, message", [
+    ("timestamps_start.txt", None, None, r"velodyne_points/timestamps_start\.txt: timestamps file not found"),
+    ("timestamps.txt", 2, "", r"velodyne_points/timestamps\.txt:3: no timestamp \(frame 2\)"),
+    ("timestamps_end.txt", 3, "2011-09-26 13:02:25.4x", r"timestamps_end\.txt:4: not a timestamp: '2011-09-26 "
+     r"13:02:25\.4x' \(frame 3\)"),
+    ("timestamps.txt", 1, "2011-09-26 25:02:25.1", r"timestamps\.txt:2: not a timestamp: .* \(frame 1\)"),
+    ("timestamps_end.txt", 1, "2011-09-26 13:02:25.0", r"timestamps_end\.txt:2: the sweep of frame 1 ends "
+     r"-0\.048150 s after it starts \(timestamps_start\.txt\), expected 0-1 s"),
+    ("timestamps.txt", 1, "2011-09-26 13:02:25.9", r"timestamps\.txt:2: frame 1 faces forward outside its sweep"),
+    ("timestamps_start.txt", 0, "2011-09-26 13:02:23.9", r"timestamps_end\.txt:1: the sweep of frame 0 ends 1\.15"),
+])
+def test_raw_bad_velodyne_timestamps_name_file_and_frame(tmp_path, name, frame, text, message):
+    drive = make_raw(tmp_path, MOTION)
+    path = drive / "velodyne_points" / name
+    if frame is None:
+        path.unlink()
+    else:
+        _rewrite_line(path, frame, text)
+    with pytest.raises(DatasetError, match=message):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+
+
+def test_raw_velodyne_timestamps_short_unordered_or_blank_outside_the_selection(tmp_path):
+    drive = make_raw(tmp_path, MOTION)
+    stamps = drive / "velodyne_points" / "timestamps.txt"
+    full = stamps.read_text()
+    stamps.write_text("".join(full.splitlines(keepends=True)[:3]))
+    with pytest.raises(DatasetError, match=r"timestamps\.txt: no timestamp for frame 3 \(3 lines\)"):
+        KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
+    # drive 0009 has blank velodyne stamps where its frames 177-180 have no scan: frames outside them still read
+    stamps.write_text(full)
+    for name in ("timestamps_start.txt", "timestamps.txt", "timestamps_end.txt"):
+        _rewrite_line(drive / "velodyne_points" / name, 3, "")
+    assert len(KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}", frames=slice(0, 3))) == 3
+    write_velodyne_stamps(drive, len(MOTION))
+    for name in ("timestamps_start.txt", "timestamps.txt", "timestamps_end.txt"):  # frame 2 as frame 1
+        path = drive / "velodyne_points" / name
+        _rewrite_line(path, 2, path.read_text().splitlines()[1])
+    with pytest.raises(DatasetError, match=r"timestamps\.txt:3: frame 2 is not after frame 1"):
         KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}")
 
 

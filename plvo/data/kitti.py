@@ -1,9 +1,22 @@
 """KITTI odometry and raw layouts, read through pykitti.
 
 Odometry: `root/sequences/NN/{image_0..3, velodyne, calib.txt, times.txt}` and `root/poses/NN.txt`.
-Raw: `root/DATE/DATE_drive_NNNN_sync/{image_00..03/data, velodyne_points/data, oxts/data, oxts/timestamps.txt}`
-and `root/DATE/calib_{cam_to_cam, velo_to_cam, imu_to_velo}.txt`; ground truth from oxts, as cam0 poses relative
-to the drive's frame 0.
+Raw: `root/DATE/DATE_drive_NNNN_sync/{image_00..03/data, velodyne_points/data, oxts/data, oxts/timestamps.txt}`,
+`velodyne_points/timestamps{_start,,_end}.txt` and `root/DATE/calib_{cam_to_cam, velo_to_cam, imu_to_velo}.txt`;
+ground truth from oxts, as cam0 poses relative to the drive's frame 0.
+
+Sweeps: the odometry benchmark's scans are motion-compensated (its readme; CT-ICP and KISS-ICP do not deskew them);
+a raw drive's are raw sweeps, each return in the sensor frame at its own time (its readme: "untwist" them), and are
+read so (`scans_compensated = False`: registration deskews them). A raw frame's time is the instant its sweep faced
+forward, when the cameras were triggered (`velodyne_points/timestamps.txt`, seconds since the drive's frame 0):
+regular (102.5-104.6 ms apart on drive 0009), where the oxts stamps, pykitti's, are the nearest 100 Hz records
+(80-110 ms apart, 11-38 ms later) and the images' stamps come 16-21 ms later (the capture's latency). Each return's time
+(`Frame.scan_time`, relative to the frame's time) follows from its azimuth over the frame's own sweep, whose length
+is `timestamps_end - timestamps_start` (101-106 ms on drive 0009, not a nominal 100): clockwise seen from above,
+behind at the start and the end, zero facing forward (plvo.lidar.deskew.azimuth_times; KITTI writes timestamps.txt
+as the midpoint of start and end). KITTI's readme says the lidar turns counter-clockwise; the scans say clockwise:
+deskewed clockwise, raw scans k and k+10 of drive 0009 register with a residual of 0.2167 m rms, undeskewed 0.2187,
+deskewed counter-clockwise 0.2235.
 
 pykitti parses calibration, timestamps and oxts and reads the files; this module checks the layout first so that
 bad data raises a DatasetError / CalibrationError naming the file and frame instead of a KeyError or IndexError.
@@ -28,6 +41,7 @@ from plvo.data.images import split_gray_color
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import CalibrationError, DatasetError, TrajectoryError
 from plvo.geometry import se3
+from plvo.lidar.deskew import azimuth_times
 from plvo.types import Calibration, Frame
 
 log = logging.getLogger(__name__)
@@ -176,9 +190,9 @@ def _calibration(calib, camera: int, width: int, height: int, elevation_offset_d
 class _KittiSequence(SelectedFrames):
     """Shared lazy reading of a selected range of KITTI frames (image + scan files per frame number).
 
-    scans_compensated: KITTI's own scans are delivered motion-compensated (KISS-ICP and CT-ICP do not deskew them);
-    a generated sequence's are unless its scene.json says the lidar sweeps (the twins: each return in the sensor
-    frame at its own time)."""
+    scans_compensated: the odometry benchmark's scans are delivered motion-compensated (KISS-ICP and CT-ICP do not
+    deskew them); a generated sequence's are unless its scene.json says the lidar sweeps (the twins: each return in
+    the sensor frame at its own time); a raw drive's are not (KittiRaw)."""
 
     name: str
     scans_compensated: bool = True
@@ -212,14 +226,16 @@ class _KittiSequence(SelectedFrames):
         i = self._position(i)
         gt = None if self._gt is None else self._gt[i].copy()
         gray, color = self._load_image(i)
+        scan = self._load_scan(i)
         return Frame(
             index=self._frames[i],
             time=float(self._times[i]),
             image=gray,
-            scan=self._load_scan(i),
+            scan=scan,
             calib=self.calib,
             gt_T_world_cam=gt,
             color=color,
+            scan_time=self._scan_times(i, scan),
             scan_compensated=self.scans_compensated,
         )
 
@@ -245,6 +261,16 @@ class _KittiSequence(SelectedFrames):
     def load_scan(self, i: int) -> np.ndarray:
         """The scan (N,4) of position i alone, without decoding the image (for lidar-only methods)."""
         return self._load_scan(self._position(i))
+
+    def load_timed_scan(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The scan (N,4) of position i alone and its returns' times (N,) in seconds after the frame's time where the
+        layout records its sweeps (a raw drive), else None (as `Frame.scan_time`)."""
+        i = self._position(i)
+        scan = self._load_scan(i)
+        return scan, self._scan_times(i, scan)
+
+    def _scan_times(self, i: int, scan: np.ndarray) -> np.ndarray | None:
+        return None
 
     def _load_scan(self, i: int) -> np.ndarray:
         path, frame = self._scans[i], self._frames[i]
@@ -342,9 +368,12 @@ def _odometry_gt(pose_file: Path, frames: tuple[int, ...], T_cam0_cam: np.ndarra
 
 
 class KittiRaw(_KittiSequence):
-    """KITTI raw synced drive `root/DATE/DATE_drive_NNNN_sync`; ground truth from oxts (cam0 of frame 0 = world)."""
+    """KITTI raw synced drive `root/DATE/DATE_drive_NNNN_sync`; ground truth from oxts (cam0 of frame 0 = world);
+    raw sweeps, each frame at the instant its sweep faced forward, each return's time from its azimuth over that
+    frame's sweep (see the module doc)."""
 
     name = "kitti_raw"
+    scans_compensated = False
 
     def __init__(self, root: str | Path, drive: str, frames: FrameSelection = None, camera: int = 0) -> None:
         root, camera = Path(root), _check_camera(camera)
@@ -368,12 +397,63 @@ class KittiRaw(_KittiSequence):
             raise DatasetError(f"{stamps}: timestamps file not found")
         if len(stamps.read_text().splitlines()) < n:
             raise DatasetError(f"{stamps}: fewer timestamps than the {n} frames")
+        times, self._sweep_s = _velodyne_sweeps(drive_dir / "velodyne_points", selected)
         data = _load_pykitti_raw(root, date, number, selected, oxts_dir)
         width, height = _image_size(images[selected[0]], selected[0])
         calib = _calibration(data.calib, camera, width, height, KITTI_LIDAR_ELEVATION_OFFSET_DEG)
-        times = np.array([(t - data.timestamps[0]).total_seconds() for t in data.timestamps[1:]])
         gt = _raw_gt(data, calib.T_cam0_cam)
         self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt, camera)
+
+    def _scan_times(self, i: int, scan: np.ndarray) -> np.ndarray:
+        return azimuth_times(scan, float(self._sweep_s[i]))
+
+
+_STAMP = re.compile(r"^\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}(\.\d{1,9})?$")
+_MAX_SWEEP_S = 1.0  # a spinning lidar's sweep; the HDL-64E's is 0.1
+
+
+def _read_stamps(path: Path, frames: tuple[int, ...]) -> np.ndarray:
+    """A raw drive's timestamps file (one `YYYY-MM-DD HH:MM:SS.fffffffff` line a frame) -> (len(frames),) int64
+    nanoseconds of the given frames, naming the file, line and frame of a missing or bad one."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: timestamps file not found")
+    lines = path.read_text().splitlines()
+    out = np.empty(len(frames), np.int64)
+    for j, k in enumerate(frames):
+        if k >= len(lines):
+            raise DatasetError(f"{path}: no timestamp for frame {k} ({len(lines)} lines)")
+        text = lines[k].strip()
+        try:
+            if not _STAMP.match(text):
+                raise ValueError(text)
+            out[j] = np.datetime64(text.replace(" ", "T"), "ns").astype(np.int64)
+        except ValueError:
+            what = "no timestamp" if not text else f"not a timestamp: {text!r}"
+            raise DatasetError(f"{path}:{k + 1}: {what} (frame {k})") from None
+    return out
+
+
+def _velodyne_sweeps(velo_dir: Path, frames: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A raw drive's velodyne timestamps -> (the frames' times (len,) in seconds since the drive's first frame faced
+    forward, their sweeps' durations (len,) in seconds), checked: each sweep 0-1 s long, facing forward within it,
+    the frames in time order."""
+    with_first = (0, *frames)
+    start, forward, end = (_read_stamps(velo_dir / name, with_first)
+                           for name in ("timestamps_start.txt", "timestamps.txt", "timestamps_end.txt"))
+    for j, k in enumerate(with_first):
+        sweep = 1e-9 * float(end[j] - start[j])
+        if not 0.0 < sweep < _MAX_SWEEP_S:
+            raise DatasetError(f"{velo_dir / 'timestamps_end.txt'}:{k + 1}: the sweep of frame {k} ends {sweep:.6f} s "
+                               f"after it starts (timestamps_start.txt), expected 0-{_MAX_SWEEP_S:g} s")
+        if not start[j] <= forward[j] <= end[j]:
+            raise DatasetError(f"{velo_dir / 'timestamps.txt'}:{k + 1}: frame {k} faces forward outside its sweep "
+                               "(timestamps_start.txt .. timestamps_end.txt)")
+    step = np.diff(forward[1:])
+    if np.any(step <= 0):
+        j = int(np.flatnonzero(step <= 0)[0]) + 1
+        raise DatasetError(f"{velo_dir / 'timestamps.txt'}:{frames[j] + 1}: frame {frames[j]} is not after frame "
+                           f"{frames[j - 1]}")
+    return 1e-9 * (forward[1:] - forward[0]).astype(np.float64), 1e-9 * (end[1:] - start[1:]).astype(np.float64)
 
 
 def _check_oxts_listing(oxts_dir: Path, n: int) -> None:

@@ -7,15 +7,21 @@ loader applies (measured on the 51 real frames: without it 0.74/0.63/0.55 % over
 it 0.77/0.67/0.61 %).
 
 Deskew: KISS-ICP's own default (`data.deskew = True`), which deskews a scan given its returns' timestamps and
-leaves it as it is without them. It gets them where the source says its scans are not motion-compensated (the
-twins, a bag's sweep with per-point times: `Frame.scan_compensated`), as its own ROS loader reads them from such a
-bag: the data's per-point times, else each return's azimuth time (plvo.lidar.deskew.azimuth_times), the same times
-plvo deskews with. KITTI's own scans are compensated and get none, as kiss_icp's KITTI loader gives none.
-`KissOptions(deskew=False)` runs it on the raw sweeps instead. kiss_icp moves a deskewed scan to its sweep's *end*
-(the last timestamp) with the motion it predicts (its last frame-to-frame delta), so its pose of that scan is the
-sensor's at the sweep's end, half a frame after the frame's time where the ground truth and plvo put it (0.7 m
-further along at 14 m/s; on a 20-frame twin starting from standstill it made the path 4.8 % too long).
-`at_frame_time` takes each such pose back to the frame's time along that same predicted motion.
+leaves it as it is without them. It gets them where the source says its scans are raw sweeps, not
+motion-compensated (the twins, a KITTI raw drive, a bag's sweep with per-point times: `Frame.scan_compensated`), as
+its own ROS loader reads them from such a bag: the data's per-return times (a bag's fields; a raw drive's azimuth
+over its recorded sweep), else each return's azimuth time (plvo.lidar.deskew.azimuth_times), the same times plvo
+deskews with. KITTI's odometry scans are compensated and get none, as kiss_icp's KITTI loader gives none.
+`KissOptions(deskew=False)` runs it on the raw sweeps instead; on raw sweeps the evaluation runs it both ways and
+reports the one closer to the truth (`both_ways`, plvo.eval.tasks), as deskewing does not help it everywhere: on
+KITTI's raw drive 0009 (frames 0-50) deskewed it gets 2.99 / 2.74 / 2.61 % over 10 / 20 / 40 m (1.32 / 0.90 / 0.50
+with the truth's heading offset taken out), not deskewed 2.90 / 2.72 / 2.62 % (1.27 / 0.89 / 0.48).
+
+kiss_icp moves a deskewed scan to its sweep's *end* (the last timestamp) with the motion it predicts (its last
+frame-to-frame delta), so its pose of that scan is the sensor's at the sweep's end, half a frame after the frame's
+time where the ground truth and plvo put it (0.7 m further along at 14 m/s; on a 20-frame twin starting from
+standstill it made the path 4.8 % too long). `sweep_end_to_frame_time` takes each such pose back to the frame's time
+along that same predicted motion.
 
 KISS-ICP estimates lidar poses T_lidar0_lidar; they are turned into cam0 poses through the calibration,
 T_cam0_cam0i = T_cam0_velo @ T_lidar0_lidari @ T_velo_cam0, as kiss_icp's apply_calibration does.
@@ -41,7 +47,8 @@ log = logging.getLogger(__name__)
 class KissOptions:
     """KISS-ICP settings: voxel size (m), max/min range (m), deskew (with the scans' timestamps where they need it,
     see the module doc), kiss_icp's KITTI scan correction, threads (0 = all cores; the runner gives each of its
-    workers a share)."""
+    workers a share); both_ways: where the scans are raw sweeps, the evaluation (plvo.eval.tasks) runs it deskewed
+    and not and reports the one closer to the truth (run_kiss itself makes one run, as `deskew` says)."""
 
     voxel_size_m: float = 1.0
     max_range_m: float = 100.0
@@ -49,6 +56,7 @@ class KissOptions:
     deskew: bool = True
     kitti_correction: bool = False
     max_threads: int = 0
+    both_ways: bool = True
 
 
 @dataclass(frozen=True)
@@ -92,12 +100,28 @@ def scan_reader(dataset: Dataset):
 
 def timed_scan_reader(dataset: Dataset):
     """i -> (scan (N,4), its returns' times (N,) in seconds after the frame's time, or None where the source says
-    its scans are motion-compensated), read as `scan_reader` reads (the scan alone where the dataset can)."""
+    its scans are motion-compensated), read as `scan_reader` reads (the scan alone where the dataset can, with the
+    times it records: `load_timed_scan`)."""
+    compensated = bool(getattr(dataset, "scans_compensated", True))
+    load_timed_scan = getattr(dataset, "load_timed_scan", None)
+    if callable(load_timed_scan):
+        def read(i: int) -> tuple[np.ndarray, np.ndarray | None]:
+            scan, times = load_timed_scan(i)
+            return _with_times(scan, times, compensated)
+
+        return read
     load_scan = getattr(dataset, "load_scan", None)
     if callable(load_scan):
-        compensated = bool(getattr(dataset, "scans_compensated", True))
         return lambda i: _with_times(load_scan(i), None, compensated)
     return lambda i: _frame_scan(dataset[i])
+
+
+def raw_sweeps(dataset: Dataset) -> bool:
+    """Whether a dataset's scans are raw sweeps (each return at its own time), as the peers read them: the
+    dataset's `scans_compensated` where it says, else its first frame's."""
+    if hasattr(dataset, "scans_compensated"):
+        return not dataset.scans_compensated
+    return len(dataset) > 0 and timed_scan_reader(dataset)(0)[1] is not None
 
 
 def _frame_scan(frame) -> tuple[np.ndarray, np.ndarray | None]:

@@ -21,7 +21,8 @@ deskews only with per-point timestamps (any unit: it normalises them to the scan
 to the sweep's end with the last frame-to-frame motion); given an empty array, as kiss_icp's own KITTI loader
 gives, it leaves the scan as it is. It gets the same timestamps as KISS-ICP (plvo.eval.kiss: where the source says
 its scans are not motion-compensated, the data's or the azimuth's), unless `KissSlamOptions(deskew=False)`, and its
-poses of deskewed scans are taken from the sweep's end to the frame's time as KISS-ICP's are.
+poses of deskewed scans are taken from the sweep's end to the frame's time as KISS-ICP's are. On raw sweeps the
+evaluation runs it both ways, as KISS-ICP, and reports the one closer to the truth (`both_ways`, plvo.eval.tasks).
 
 KISS-SLAM prints its progress ("KissSLAM| Closure Detected", ...) to stdout and its pose-graph optimiser (g2o, in
 C++) its iterations to stderr; both are captured at the file descriptors around its calls and logged at debug level
@@ -55,10 +56,13 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class KissSlamOptions:
     """KISS-SLAM settings beyond its own defaults: the odometry's threads (0 = all cores; the runner gives each of
-    its workers a share, as for KISS-ICP); deskew: give it the scans' timestamps where they need them (as KISS-ICP)."""
+    its workers a share, as for KISS-ICP); deskew: give it the scans' timestamps where they need them (as KISS-ICP);
+    both_ways: where the scans are raw sweeps, the evaluation runs it deskewed and not and reports the one closer to
+    the truth (as KissOptions.both_ways)."""
 
     max_threads: int = 0
     deskew: bool = True
+    both_ways: bool = True
 
 
 @dataclass(frozen=True)
