@@ -30,6 +30,9 @@ class TrackingResult:
     T_world_cam: (4,4) estimated pose. point_inliers / line_inliers: indices into this frame's FeatureSet keypoints
     / segments that were tracked and kept by PnP/PnL. ok: False when tracking was lost (then T_world_cam is the
     motion-model prediction). message: a short human-readable decision, e.g. "keyframe: 52 tracked < 60".
+    pnpl_point_residuals / pnpl_line_residuals: (k,) px, the frame-to-frame PnPL's inliers' reprojection distances at
+    its pose (a point's to its keypoint, a line's farther endpoint's to the projected line), before the landmarks
+    re-found by projection join; empty where nothing was solved (first frame, tracking lost).
     """
 
     frame_index: int
@@ -41,6 +44,8 @@ class TrackingResult:
     is_keyframe: bool = False
     ok: bool = True
     message: str = ""
+    pnpl_point_residuals: np.ndarray = field(default_factory=lambda: _empty((0,)))
+    pnpl_line_residuals: np.ndarray = field(default_factory=lambda: _empty((0,)))
 
 
 @dataclass(frozen=True)

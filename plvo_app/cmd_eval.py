@@ -2,8 +2,12 @@
 
 `metric` prints the KITTI devkit figures (translation error in %, rotation error in deg/m, per segment length
 100..800 m, a start every 10 frames), the ATE after SE(3) and Sim(3) alignment, and the relative error over short
-lengths with every frame a start. Both files are KITTI pose files (12 numbers a line, one line per frame).
+lengths with every frame a start; then the devkit and short errors again with one constant heading offset of the
+truth against the estimate taken out, and the fitted angle (plvo.eval.kitti_metric says why). Both files are KITTI
+pose files (12 numbers a line, one line per frame).
 `run` runs plvo ablations and KISS-ICP over sequences and writes Table I (see plvo_app/eval_run.py).
+`stages` runs plvo and KISS-ICP on a real clip and on its twin and sets their per-stage statistics side by side
+(plvo_app/cmd_eval_stages.py).
 Further actions are added to EVAL_COMMANDS.
 """
 
@@ -18,6 +22,7 @@ from pathlib import Path
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import PlvoError, TrajectoryError
 from plvo.eval.kitti_metric import SHORT_LENGTHS, RelativeError, SequenceEvaluation, evaluate_sequence, evaluation_json
+from plvo_app import cmd_eval_stages
 
 
 def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
@@ -84,6 +89,14 @@ def metric_table(ev: SequenceEvaluation, gt: Path, est: Path) -> str:
         "short relative error (devkit error on short lengths, every frame a start):",
         *_table_rows(ev.short),
     ]
+    if math.isnan(ev.heading_offset_deg):
+        lines.append("heading offset: none fitted (no segment of any length)")
+        return "\n".join(lines)
+    lines.append(f"heading offset taken out: {ev.heading_offset_deg:.3f} deg about the camera's vertical axis, "
+                 "fitted (> 0: the truth runs right of the estimate)")
+    if ev.kitti_aligned.n_segments:  # an empty devkit table was shown and explained above
+        lines += ["KITTI devkit metric, heading offset taken out:", *_table_rows(ev.kitti_aligned)]
+    lines += ["short relative error, heading offset taken out:", *_table_rows(ev.short_aligned)]
     return "\n".join(lines)
 
 
@@ -121,6 +134,7 @@ EVAL_COMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None], Callab
         _run_run,
         "run plvo ablations and KISS-ICP over sequences (local processes or Ray); Table I, JSON and plots",
     ),
+    "stages": cmd_eval_stages.COMMAND,
 }
 
 

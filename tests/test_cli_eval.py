@@ -73,6 +73,53 @@ def test_json_matches_library_on_real_ground_truth(kitti_root, tmp_path, capsys)
     assert out["short"]["10"]["t_err_pct"] == pytest.approx(ev.short.per_length[0].t_err_pct, rel=1e-12)
 
 
+@pytest.fixture
+def turned_pair(tmp_path) -> tuple[Path, Path]:
+    """A 300 m straight truth, and an estimate of it 1 % too long, heading 0.5 deg to the left of the truth."""
+    gt = _line(600)
+    R = se3.from_rt(se3.so3_exp(np.array([0.0, np.radians(-0.5), 0.0])), np.zeros(3))
+    est = R @ gt @ R.T
+    est[:, :3, 3] *= 1.01
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    write_kitti_poses(tmp_path / "est.txt", est)
+    return tmp_path / "gt.txt", tmp_path / "est.txt"
+
+
+def test_json_gives_both_readings(turned_pair, capsys):
+    gt, est = turned_pair
+    assert main(["eval", "metric", "--gt", str(gt), "--est", str(est), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    aligned = out["heading_aligned"]
+    assert aligned["heading_offset_deg"] == pytest.approx(0.5, abs=1e-9)
+    # as the devkit reads it: the 1 % scale and the 0.5 deg turn (0.87 %) together, |1.01 R e - e| / |e| (1.33 %),
+    # times each segment's overshoot of its nominal length by one 0.5 m step
+    both = 100 * np.sqrt(1.01**2 - 2 * 1.01 * np.cos(np.radians(0.5)) + 1)
+    assert out["segments"]["100"]["t_err_pct"] == pytest.approx(both * 100.5 / 100, rel=1e-6)
+    assert out["short"]["10"]["t_err_pct"] == pytest.approx(both * 10.5 / 10, rel=1e-6)
+    # the turn taken out: the scale error alone
+    assert aligned["segments"]["100"]["t_err_pct"] == pytest.approx(1.0 * 100.5 / 100, rel=1e-6)
+    assert aligned["short"]["10"]["t_err_pct"] == pytest.approx(1.0 * 10.5 / 10, rel=1e-6)
+    assert aligned["segments"]["100"]["n_segments"] == out["segments"]["100"]["n_segments"] == 40
+    assert "ate_m" in out and "ate_m" not in aligned  # ATE aligns the whole path anyway: one reading
+
+
+def test_table_gives_both_readings_and_names_the_angle(turned_pair, capsys):
+    gt, est = turned_pair
+    assert main(["eval", "metric", "--gt", str(gt), "--est", str(est)]) == 0
+    out = capsys.readouterr().out
+    assert "heading offset taken out: 0.500 deg about the camera's vertical axis" in out
+    head, aligned = out.split("heading offset taken out:", 1)
+    assert "KITTI devkit metric, heading offset taken out:" in aligned
+    assert "short relative error, heading offset taken out:" in aligned
+
+    def row(text: str, length: str) -> float:
+        return float(next(line for line in text.splitlines() if line.strip().startswith(length)).split()[3])
+
+    assert row(head, "100 m") == pytest.approx(1.330 * 1.005, abs=2e-3)
+    assert row(aligned, "100 m") == pytest.approx(1.005, abs=1e-3)
+    assert row(aligned, "10 m") == pytest.approx(1.05, abs=1e-3)
+
+
 def _error_line(capsys) -> str:
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1, err

@@ -49,6 +49,7 @@ from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 log = logging.getLogger(__name__)
 
 INITIALISED, TRACKED, REINITIALISED = "initialised", "tracked", "reinitialised"
+_NONE = np.zeros(0)  # no PnPL residuals (nothing solved); read-only like every result's arrays
 
 
 def _arr(shape: tuple[int, ...], dtype: type = float):
@@ -238,7 +239,8 @@ class Frontend:
                + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
         return self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
-                            corr, (p_in, l_in), n_new, keyframe, timings)
+                            corr, (p_in, l_in), n_new, keyframe, timings,
+                            (sol.point_residuals[sol.point_inliers], sol.line_residuals[sol.line_inliers]))
 
     # ---- matching and correspondences --------------------------------------------------------------------
     def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray | None) -> tuple[Matches, Matches]:
@@ -510,7 +512,8 @@ class Frontend:
         return len(j)
 
     # ---- result ------------------------------------------------------------------------------------------
-    def _result(self, frame, state, status, msg, reason, n_pm, n_lm, corr, inliers, n_new, keyframe, timings):
+    def _result(self, frame, state, status, msg, reason, n_pm, n_lm, corr, inliers, n_new, keyframe, timings,
+                pnpl_residuals=(_NONE, _NONE)):
         if inliers is None or status == REINITIALISED:
             inliers = (np.zeros(len(corr["uv"]), bool), np.zeros(len(corr["segs"]), bool))
         p_in, l_in = inliers
@@ -523,6 +526,7 @@ class Frontend:
             line_landmark=corr["l_lm"], line_inlier=l_in, n_new_points=n_new[0], n_new_lines=n_new[1],
             association=FrameAssociation(state.assoc.point_landmark.copy(), state.assoc.line_landmark.copy()),
             features=state.features, keyframe=keyframe, timings=dict(timings),
+            pnpl_point_residuals=pnpl_residuals[0], pnpl_line_residuals=pnpl_residuals[1],
         )
 
 
