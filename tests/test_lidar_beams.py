@@ -17,6 +17,7 @@ from plvo.depth.density import ring_spacing_px
 from plvo.depth.extract import extract_depth
 from plvo.depth.projection import project_scan
 from plvo.errors import PlvoError
+from plvo.eval.kiss import timed_scan_reader
 from plvo.features.extract import extract_features
 from plvo.lidar.beams import HDL64E_ELEVATIONS_DEG, beam_rings, elevation_deg, resample_beams
 
@@ -96,3 +97,6 @@ def test_beams_option_resamples_any_source(synth_seq):
     assert len(ds[1].scan) == pytest.approx(len(full[1].scan) / 4, rel=0.05)
     again = pickle.loads(pickle.dumps(ds))
     np.testing.assert_array_equal(again[1].scan, ds[1].scan)
+    # the lidar-only peers read the same thinned scans (they read without decoding the images)
+    np.testing.assert_array_equal(timed_scan_reader(ds)(1)[0], ds[1].scan)
+    np.testing.assert_array_equal(ds.load_scan(2), ds[2].scan)

@@ -70,6 +70,27 @@ class BeamResampled:
         frame = self._dataset[i]
         if self.n_beams == 64:
             return frame
-        keep = beam_rings(frame.scan, frame.calib.lidar_elevation_offset_deg) % (64 // self.n_beams) == 0
-        times = None if frame.scan_time is None else frame.scan_time[keep]
-        return replace(frame, scan=frame.scan[keep], scan_time=times)
+        scan, times = self._thin(frame.scan, frame.scan_time)
+        return replace(frame, scan=scan, scan_time=times)
+
+    # The lidar-only peers read scans through these, not through __getitem__: without them __getattr__ would hand
+    # them the wrapped dataset's full scans.
+    def load_scan(self, i: int) -> np.ndarray:
+        return self.load_timed_scan(i)[0]
+
+    def load_timed_scan(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+        inner = self._dataset
+        if callable(getattr(inner, "load_timed_scan", None)):
+            scan, times = inner.load_timed_scan(i)
+        elif callable(getattr(inner, "load_scan", None)):
+            scan, times = inner.load_scan(i), None
+        else:
+            frame = inner[i]
+            scan, times = frame.scan, frame.scan_time
+        return self._thin(scan, times)
+
+    def _thin(self, scan: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.n_beams == 64:
+            return scan, times
+        keep = beam_rings(scan, self.calib.lidar_elevation_offset_deg) % (64 // self.n_beams) == 0
+        return scan[keep], None if times is None else times[keep]
