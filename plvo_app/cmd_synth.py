@@ -4,9 +4,13 @@ Examples:
   plvo synth --out data/synth --seq 00 --frames 300 --seed 1 --loop        # the town: a grid of blocks
   plvo synth --out data/twins --seq 05 --follow ../shared/data/kitti/poses/05.txt --frames 0:200
   plvo synth --out data/twins --twins 00-10 --kitti-poses ../shared/data/kitti/poses --frames 0:100 --workers 2
+  plvo synth --out data/rawtwins --raw-drive ../shared/data/kitti_raw --seq 2011_09_26_drive_0009 --frames 0:51
 write OUT/sequences/NN/{image_0,velodyne,gt}/..., calib.txt, times.txt and OUT/poses/NN.txt, readable by
 pykitti.odometry('OUT', 'NN') and by `plvo-viz --root OUT --seq NN`. A twin (--follow, --twins) is driven along a
-KITTI pose file, with traffic, sun and shadows and a rolling lidar sweep (see plvo.data.synth.twin).
+KITTI pose file, with traffic, sun and shadows and a rolling lidar sweep (see plvo.data.synth.twin), and the
+imperfections of KITTI's sensors (twin.realism; --ideal: none, the twins as they were before). A raw drive's twin
+(--raw-drive ROOT --seq DATE_drive_NNNN) follows the drive's oxts and is written in KITTI's raw layout under
+OUT/DATE, read as the real drive is (`plvo-viz --root OUT --seq DATE_drive_NNNN`).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -30,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     parser.description = __doc__.strip()
     parser.add_argument("--out", required=True, help="dataset root to write (sequences/NN and poses/NN.txt)")
-    parser.add_argument("--seq", default="00", help="two-digit sequence number")
+    parser.add_argument("--seq", default="00",
+                        help="two-digit sequence number (with --raw-drive: the drive, e.g. 2011_09_26_drive_0009)")
     parser.add_argument("--frames", default=None,
                         help="the town: number of frames (10 per second, default 300); a twin: range A:B of the "
                              "followed file (B exclusive; default all)")
@@ -50,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     twin.add_argument("--traffic", type=int, default=None, metavar="N",
                       help="moving cars in a twin (default: one per 60 m of path; 0: none)")
     twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_MODELS)}")
+    twin.add_argument("--ideal", action="store_true",
+                      help="ideal sensors: no camera, lidar or rig imperfections, KITTI 00-02's calibration for "
+                           "every twin and raw sweeps (the twins as written before the realism existed)")
+    twin.add_argument("--raw-drive", metavar="ROOT",
+                      help="the twin of a KITTI raw drive under ROOT (--seq DATE_drive_NNNN; its oxts, timestamps "
+                           "and calibration), written in KITTI's raw layout under --out")
     twin.add_argument("--workers", type=int, default=1, help="--twins: local worker processes (or CPUs of local Ray)")
     twin.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
                       help="--twins: fan out over Ray ('local' or a cluster address; --out and the pose files on a "
@@ -68,8 +80,12 @@ def _town_frames(text) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.raw_drive:
+        return run_raw_twin(args)
     if args.follow or args.twins:
         return run_twins(args)
+    if args.ideal:
+        raise SynthError("--ideal: for twins (--follow, --twins, --raw-drive); the town's sensors are ideal already")
     args.frames = _town_frames(args.frames)
     settings = SynthSettings(args.frames, args.seed, args.speed, args.loop, args.stops, args.exposure_change,
                              args.depth)
@@ -105,7 +121,8 @@ def run_twins(args: argparse.Namespace) -> int:
         raise SynthError("--follow and --twins: give one (--twins follows --kitti-poses/NN.txt)")
     if args.workers < 1:
         raise SynthError(f"--workers {args.workers}: must be at least 1")
-    base = TwinSettings(str(args.follow or ""), args.frames, args.seed, args.traffic, args.lidar, args.depth)
+    base = TwinSettings(str(args.follow or ""), args.frames, args.seed, args.traffic, args.lidar, args.depth,
+                        _realism(args))
     if args.twins:
         if not args.kitti_poses:
             raise SynthError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ...)")
@@ -124,3 +141,38 @@ def run_twins(args: argparse.Namespace) -> int:
     log.info("wrote %d twin(s) under %s: %d frames in %.1f s (%.2f frames/s over the batch)",
              sum(not r.cached and not r.error for r in results), args.out, frames, seconds, frames / max(seconds, 1e-9))
     return 0 if not any(r.error for r in results) else 1
+
+
+def _realism(args: argparse.Namespace):
+    from plvo.data.synth.twin.realism import IDEAL, REALISTIC
+
+    return IDEAL if args.ideal else REALISTIC
+
+
+def run_raw_twin(args: argparse.Namespace) -> int:
+    """--raw-drive ROOT --seq DATE_drive_NNNN: the drive's twin in KITTI's raw layout under --out."""
+    from plvo.data.synth.twin.generate import TwinSettings
+    from plvo.data.synth.twin.raw_drive import check_raw_request, generate_raw_twin, parse_drive_name
+
+    if args.follow or args.twins:
+        raise SynthError("--raw-drive and --follow/--twins: give one (a raw drive's twin follows its own oxts)")
+    date, number = parse_drive_name(args.seq)
+    drive = f"{date}_drive_{number}"
+    settings = TwinSettings(str(Path(args.raw_drive).resolve() / date / f"{drive}_sync"), args.frames, args.seed,
+                            args.traffic, args.lidar, args.depth, _realism(args))
+    plan = check_raw_request(args.out, args.raw_drive, drive, settings, args.overwrite)  # errors before any output
+    bar = None if args.no_progress else tqdm(total=plan.path.n_frames, unit="frame", desc=f"twin {drive}")
+
+    def progress(done: int, total: int) -> None:
+        if bar is not None:
+            bar.update(done - bar.n)
+
+    start = time.perf_counter()
+    try:
+        generate_raw_twin(args.out, args.raw_drive, drive, settings, progress, args.overwrite, plan)
+    finally:
+        if bar is not None:
+            bar.close()
+    seconds = time.perf_counter() - start
+    log.info("wrote %s/%s/%s_sync in %.1f s", args.out, date, drive, seconds)
+    return 0

@@ -65,6 +65,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     twins.add_argument("--traffic", type=int, default=None, metavar="N",
                        help="moving cars per twin (default: one per 60 m of path)")
     twins.add_argument("--lidar", default="hdl64", help="lidar model of the twins (default: hdl64)")
+    twins.add_argument("--ideal-twins", action="store_true",
+                       help="twins with ideal sensors (no camera, lidar or rig imperfections, raw sweeps, KITTI "
+                            "00-02's calibration), as they were generated before the realistic ones")
     p.add_argument(
         "--ablations", default=None, metavar="A,B,...",
         help=f"plvo settings, comma-separated, from {', '.join(ABLATIONS)}; 'none' runs no plvo (default: full; "
@@ -171,7 +174,10 @@ def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
 
     if args.kitti_poses is None:
         raise PlvoError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ... 10.txt)")
-    base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar)
+    from plvo.data.synth.twin.realism import IDEAL, REALISTIC
+
+    base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar,
+                        realism=IDEAL if args.ideal_twins else REALISTIC)
     jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
     with twin_progress("twins", lines=sys.stderr) as (progress, on_done):
         done = ensure_twins(jobs, args.twin_root, workers=args.workers, ray=args.ray, progress=progress,

@@ -95,6 +95,19 @@ def twin_root(kitti_root, tmp_path_factory) -> Path:
     return generate_twin(root, TWIN_SEQUENCE, settings)
 
 
+@pytest.fixture(scope="session")
+def ideal_twin_root(kitti_root, tmp_path_factory) -> Path:
+    """The same twin with ideal sensors (plvo synth --ideal): raw sweeps, each return at its own time, and no sensor
+    imperfections, for the tests of deskewing against the surfaces' truth."""
+    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+    from plvo.data.synth.twin.realism import IDEAL
+
+    root = tmp_path_factory.mktemp("twin07_ideal")
+    settings = TwinSettings(str(kitti_root / "poses" / f"{TWIN_SEQUENCE}.txt"), TWIN_FRAMES, seed=0, traffic=8,
+                            write_depth=True, realism=IDEAL)
+    return generate_twin(root, TWIN_SEQUENCE, settings)
+
+
 # --- an out-and-back twin: a street driven, turned on, and driven back (lidar loops in the opposite direction) -----
 
 OUTBACK_SEQUENCE = "00"
@@ -165,9 +178,13 @@ def outback_twin(tmp_path_factory) -> Path:
     from the other side 90-140 frames later (more than loop.min_keyframe_gap keyframes), and the last 20 m there
     for the place nodes of the way back (lidar_place_reach_m). Generated once per session (~1-1.5 min)."""
     from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+    from plvo.data.synth.twin.realism import IDEAL
 
     root = tmp_path_factory.mktemp("outback")
     poses = _out_and_back_poses()
     follow = root / "outback_poses.txt"
     np.savetxt(follow, poses[:, :3].reshape(-1, 12), fmt="%.9e")
-    return generate_twin(root / "twin", OUTBACK_SEQUENCE, TwinSettings(str(follow), None, seed=0, traffic=0))
+    # ideal sensors: the place-recognition tests read its raw sweeps and deskew them with the truth, and measure
+    # registrations against the truth to the centimetre
+    return generate_twin(root / "twin", OUTBACK_SEQUENCE, TwinSettings(str(follow), None, seed=0, traffic=0,
+                                                                      realism=IDEAL))

@@ -155,3 +155,24 @@ def test_a_stopped_twin_resumes_where_it_stopped(tmp_path, kitti_root):
     assert len(list(cut.glob(".twin-07-partial-*"))) == 1
     generate_twin(cut, "07", TwinSettings(settings.follow, "70:72", traffic=6), overwrite=True)
     assert not list(cut.glob(".twin-*"))  # the 66:72 stage went with the run of other settings
+
+
+def test_synth_ideal_writes_the_twins_as_before(tmp_path, kitti_root):
+    """--ideal: KITTI 00-02's calibration for every twin, raw sweeps, no realism in scene.json; without it the twin
+    has its own sequence's calibration and compensated scans."""
+    poses = kitti_root / "poses" / "05.txt"
+    for flag, out in (("--ideal", tmp_path / "ideal"), (None, tmp_path / "real")):
+        argv = ["synth", "--out", str(out), "--seq", "05", "--follow", str(poses), "--frames", "40:42", "--traffic",
+                "0", "--no-progress"]
+        assert main(argv + ([flag] if flag else [])) == 0
+    ideal = json.loads((tmp_path / "ideal" / "sequences" / "05" / "gt" / "scene.json").read_text())
+    real = json.loads((tmp_path / "real" / "sequences" / "05" / "gt" / "scene.json").read_text())
+    assert "realism" not in ideal and "realism" not in ideal["settings"] and ideal["lidar"]["sweep_s"] == 0.1
+    assert real["realism"]["calibration"]["name"] == "04-10" and real["lidar"]["motion_compensated"]
+    calib = (tmp_path / "ideal" / "sequences" / "05" / "calib.txt").read_text()
+    assert calib.startswith("P0: 7.188560000000e+02")  # 00-02's
+    image = tmp_path / "real" / "sequences" / "05" / "image_0" / "000000.png"
+    from PIL import Image
+
+    assert Image.open(image).size == (1226, 370)
+    assert main(["synth", "--out", str(tmp_path / "town"), "--seq", "00", "--frames", "2", "--ideal"]) == 2

@@ -354,8 +354,9 @@ def write_velodyne_stamps(drive_dir: Path, n: int) -> None:
         (drive_dir / "velodyne_points" / name).write_text("".join(column))
 
 
-def make_raw(root: Path, motion) -> Path:
-    """A tiny raw drive; motion = [(east, north, up, yaw), ...] of the IMU, one per frame."""
+def make_raw(root: Path, motion, oxts_lag_ns=None) -> Path:
+    """A tiny raw drive; motion = [(east, north, up, yaw), ...] of the IMU, one per frame; oxts_lag_ns: how long
+    after each frame's forward instant its oxts record was taken (default: at it)."""
     date_dir = root / DATE
     drive_dir = date_dir / f"{DATE}_drive_{DRIVE}_sync"
     date_dir.mkdir(parents=True)
@@ -371,7 +372,7 @@ def make_raw(root: Path, motion) -> Path:
         cv2.imwrite(str(drive_dir / "image_00" / "data" / f"{k:010d}.png"), np.full((H, W), k, np.uint8))
         np.ones((10, 4), np.float32).tofile(drive_dir / "velodyne_points" / "data" / f"{k:010d}.bin")
         (drive_dir / "oxts" / "data" / f"{k:010d}.txt").write_text(_oxts_line(east, north, up, yaw))
-        stamps.append(f"2011-09-26 13:02:{25 + k // 10:02d}.{(k % 10) * 100_000_000 + 123:09d}\n")
+        stamps.append(_stamp(FORWARD_NS + k * 100_000_000 + (0 if oxts_lag_ns is None else oxts_lag_ns[k])))
     (drive_dir / "oxts" / "timestamps.txt").write_text("".join(stamps))
     write_velodyne_stamps(drive_dir, len(motion))
     return drive_dir
@@ -398,6 +399,20 @@ def test_raw_drive_ground_truth_from_oxts(tmp_path):
     np.testing.assert_allclose(gt[3, :3, 3], [-5.0, -0.5, 2.0], atol=1e-6)
     frame = ds[2]
     assert frame.index == 2 and int(frame.image[0, 0]) == 2 and frame.scan.shape == (10, 4)
+
+
+def test_raw_truth_is_read_at_each_frames_own_time(tmp_path):
+    """A synced drive's oxts record is the GPS/INS sample nearest the image, 11-38 ms after the frame's forward
+    instant in a three-frame pattern (drive 0009); the truth is the motion at the frame's time, not at the record's."""
+    lag_ns = [12_000_000, 19_000_000, 15_000_000] * 3
+    speed = 10.0  # m/s east, the IMU looking east
+    motion = [(speed * (0.1 * k + 1e-9 * lag_ns[k]), 0.0, 0.0, 0.0) for k in range(9)]
+    make_raw(tmp_path, motion, lag_ns)
+    gt = KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}").gt_T_world_cam
+    steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 1.0, atol=1e-4)  # read at the records' times: 1.07, 0.96, 0.97, ...
+    part = KittiRaw(tmp_path, f"{DATE}_drive_{DRIVE}", frames=slice(4, 9))  # a window reads the same truth
+    np.testing.assert_allclose(part.gt_T_world_cam, gt[4:], atol=1e-9)
 
 
 def test_raw_frame_range_keeps_frame0_as_world(tmp_path):

@@ -317,8 +317,11 @@ class KittiOdometry(_KittiSequence):
             raise DatasetError(f"{seq_dir}: pykitti cannot load the sequence: {exc}") from None
         width, height = _image_size(images[selected[0]], selected[0])
         synthetic = (seq_dir / SYNTH_MARKER).is_file()
-        offset = 0.0 if synthetic else KITTI_LIDAR_ELEVATION_OFFSET_DEG
-        self.scans_compensated = not (synthetic and _swept_lidar(seq_dir / SYNTH_MARKER))
+        offset = KITTI_LIDAR_ELEVATION_OFFSET_DEG
+        if synthetic:  # a generated sequence says how its lidar sweeps and what elevation error it carries
+            lidar = _scene_lidar(seq_dir / SYNTH_MARKER)
+            offset = _elevation_offset(lidar, seq_dir / SYNTH_MARKER)
+            self.scans_compensated = not _swept(lidar)
         calib = _calibration(data.calib, camera, width, height, offset)
         pose_file = root / "poses" / f"{sequence}.txt"
         if not pose_file.is_file() and (seq_dir / "poses.txt").is_file():  # SemanticKITTI keeps it in the sequence
@@ -327,14 +330,34 @@ class KittiOdometry(_KittiSequence):
         self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt, camera)
 
 
-def _swept_lidar(scene_file: Path) -> bool:
-    """Whether a generated sequence's scene.json says its lidar sweeps over the frame (the twins' `lidar.sweep_s`)."""
+def _scene_lidar(scene_file: Path) -> dict:
+    """A generated sequence's scene.json -> its `lidar` block ({} when it has none)."""
     try:
         scene = json.loads(scene_file.read_text())
     except (OSError, ValueError) as exc:
         raise DatasetError(f"{scene_file}: unreadable scene description: {exc}") from None
     lidar = scene.get("lidar") if isinstance(scene, dict) else None
-    return isinstance(lidar, dict) and float(lidar.get("sweep_s", 0.0) or 0.0) > 0.0
+    return lidar if isinstance(lidar, dict) else {}
+
+
+def _swept(lidar: dict) -> bool:
+    """Whether a scene's lidar sweeps over the frame, each return at its own time (the twins' `lidar.sweep_s` > 0;
+    a realistic odometry twin's scans are motion-compensated, as KITTI's are)."""
+    return float(lidar.get("sweep_s", 0.0) or 0.0) > 0.0 and not lidar.get("motion_compensated", False)
+
+
+def _elevation_offset(lidar: dict, scene_file: Path) -> float:
+    """The vertical-angle error a generated lidar's returns carry (a realistic twin's is KITTI's; the readers raise
+    the scans by it as they do KITTI's own), 0 where the scene does not say."""
+    value = lidar.get("elevation_offset_deg", 0.0)
+    try:
+        offset = float(value)
+    except (TypeError, ValueError):
+        offset = float("nan")
+    if not np.isfinite(offset) or abs(offset) > 5.0:
+        raise DatasetError(f"{scene_file}: field 'lidar.elevation_offset_deg' must be a small angle in degrees, "
+                           f"got {value!r}")
+    return offset
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:
@@ -398,10 +421,16 @@ class KittiRaw(_KittiSequence):
         if len(stamps.read_text().splitlines()) < n:
             raise DatasetError(f"{stamps}: fewer timestamps than the {n} frames")
         times, self._sweep_s = _velodyne_sweeps(drive_dir / "velodyne_points", selected)
-        data = _load_pykitti_raw(root, date, number, selected, oxts_dir)
+        records = _oxts_records(oxts_dir, stamps, selected)
+        data = _load_pykitti_raw(root, date, number, records, oxts_dir)
         width, height = _image_size(images[selected[0]], selected[0])
-        calib = _calibration(data.calib, camera, width, height, KITTI_LIDAR_ELEVATION_OFFSET_DEG)
-        gt = _raw_gt(data, calib.T_cam0_cam)
+        offset = KITTI_LIDAR_ELEVATION_OFFSET_DEG
+        scene_file = drive_dir / SYNTH_MARKER  # a twin of a raw drive says what elevation error its lidar carries
+        if scene_file.is_file():
+            offset = _elevation_offset(_scene_lidar(scene_file), scene_file)
+        calib = _calibration(data.calib, camera, width, height, offset)
+        forward = _read_stamps(drive_dir / "velodyne_points" / "timestamps.txt", (0, *selected))
+        gt = _raw_gt(data, calib.T_cam0_cam, _read_stamps(stamps, records), forward)
         self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt, camera)
 
     def _scan_times(self, i: int, scan: np.ndarray) -> np.ndarray:
@@ -470,12 +499,23 @@ def _check_raw_calib(date_dir: Path) -> None:
     _read_calib(date_dir / "calib_cam_to_cam.txt", needed)
 
 
-def _load_pykitti_raw(root: Path, date: str, number: str, selected: tuple[int, ...], oxts_dir: Path):
-    """pykitti.raw over frame 0 followed by the selection (frame 0 is the origin of the oxts poses and times)."""
+def _oxts_records(oxts_dir: Path, stamps: Path, selected: tuple[int, ...]) -> tuple[int, ...]:
+    """The oxts records the truth of frame 0 and the selected frames is interpolated from: each of those frames'
+    own and its neighbours' where the drive has them (a record and its timestamp), in order, frame 0 first."""
+    files = _numbered_files(oxts_dir, ".txt")
+    lines = stamps.read_text().splitlines()
+    wanted = {0, *selected}
+    near = {j for k in wanted for j in (k - 1, k, k + 1)}
+    usable = {j for j in near if j in files and j < len(lines) and lines[j].strip()}
+    return tuple(sorted(usable | wanted))
+
+
+def _load_pykitti_raw(root: Path, date: str, number: str, records: tuple[int, ...], oxts_dir: Path):
+    """pykitti.raw over the given oxts records, frame 0 first (the origin of pykitti's oxts poses)."""
     try:
-        return pykitti.raw(str(root), date, number, frames=[0, *selected])
+        return pykitti.raw(str(root), date, number, frames=list(records))
     except (ValueError, TypeError, IndexError) as exc:
-        for k in (0, *selected):
+        for k in records:
             path = oxts_dir / f"{k:010d}.txt"
             fields = path.read_text().split() if path.is_file() else []
             if len(fields) != _OXTS_FIELDS or not all(_is_number(f) for f in fields):
@@ -494,9 +534,35 @@ def _is_number(s: str) -> bool:
     return True
 
 
-def _raw_gt(data, T_cam0_cam: np.ndarray) -> np.ndarray:
-    """(len,4,4) T_world_cam with world = cam0 of frame 0, from pykitti's oxts T_w_imu (index 0 is frame 0)."""
+def _raw_gt(data, T_cam0_cam: np.ndarray, record_ns: np.ndarray, frame_ns: np.ndarray) -> np.ndarray:
+    """(len,4,4) T_world_cam of the selected frames at their own times, world = cam0 of frame 0 at its time, from
+    pykitti's oxts T_w_imu of the loaded records (their timestamps record_ns (R,)) and the frames' times frame_ns
+    (1 + len,: frame 0, then the selection).
+
+    A synced drive's oxts record of a frame is the GPS/INS's 100 Hz sample nearest its image's timestamp: on
+    2011_09_26_drive_0009 11-38 ms after the frame's forward instant, in a pattern that repeats every three frames
+    (the frames' 0.1035 s against the 10 ms samples), which at 11 m/s puts +-5 cm of timing jitter into every step
+    of the truth (both plvo and KISS-ICP saw it, their step errors correlated 0.93). Each frame's pose is therefore
+    interpolated to its own time between the records either side (positions linearly, rotations along the
+    geodesic), extrapolated from the nearest two at a drive's end."""
     T_imu_cam0 = se3.inv(np.asarray(data.calib.T_cam0_imu, dtype=np.float64))
     T_w_cam0 = np.stack([np.asarray(o.T_w_imu) @ T_imu_cam0 for o in data.oxts])
-    return se3.inv(T_w_cam0[0]) @ T_w_cam0[1:] @ T_cam0_cam
+    t = 1e-9 * (np.asarray(record_ns, np.int64) - int(frame_ns[0])).astype(np.float64)
+    at = np.stack([_pose_at(T_w_cam0, t, 1e-9 * float(f - frame_ns[0])) for f in frame_ns])
+    return se3.inv(at[0]) @ at[1:] @ T_cam0_cam
+
+
+def _pose_at(poses: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
+    """(R,4,4) poses at increasing times (R,) -> the pose at t, interpolated between the two records around it
+    (or the nearest two)."""
+    if len(poses) == 1:
+        return poses[0]
+    j = int(np.clip(np.searchsorted(times, t), 1, len(times) - 1))
+    a, b = poses[j - 1], poses[j]
+    span = times[j] - times[j - 1]
+    w = (t - times[j - 1]) / span if span > 0 else 0.0
+    out = np.eye(4)
+    out[:3, :3] = a[:3, :3] @ se3.so3_exp(w * se3.so3_log(a[:3, :3].T @ b[:3, :3]))
+    out[:3, 3] = a[:3, 3] + w * (b[:3, 3] - a[:3, 3])
+    return out
 

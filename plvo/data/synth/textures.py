@@ -43,6 +43,11 @@ MATERIALS: tuple[Material, ...] = (
     Material("sign_triangle", "sign_triangle", SIGN_TILE / 0.7, 0.70, 0.95),
     Material("sign_text", "sign_text", SIGN_TILE / 0.7, 0.60, 0.95),
     Material("door", "plaster", 64.0, 0.18, 0.20),
+    # The twins' realistic scenery (plvo.data.synth.twin.scenery_realism) only; appended, so that the town's
+    # material ids and tiles stay as they were.
+    Material("leaf", "foliage", 96.0, 0.30, 0.40),  # a leaf triangle shows one or two blotches of the tile
+    Material("plain_wall", "paint", 32.0, 0.72, 0.35),  # rendered, painted walls: faint shading only
+    Material("barrier", "paint", 32.0, 0.50, 0.30),  # plain concrete or metal noise-barrier panels
 )
 MATERIAL_ID = {m.name: i for i, m in enumerate(MATERIALS)}
 SIGN_MATERIALS = ("sign_circle", "sign_triangle", "sign_text")

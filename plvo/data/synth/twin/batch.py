@@ -17,7 +17,7 @@ import queue
 import re
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from plvo.data.synth.twin.follow import load_followed
@@ -82,8 +82,11 @@ def _scene(root: Path, sequence: str) -> dict:
 
 
 def is_current(root: Path, job: TwinJob) -> bool:
+    """Whether the twin under root was written with the job's settings (as scene.json records them: an ideal twin's
+    without the realism, so twins written before it existed stay current for --ideal)."""
     data = _scene(root, job.sequence)
-    return data.get("twin_version") == TWIN_VERSION and data.get("settings") == asdict(job.settings)
+    wanted = json.loads(json.dumps(job.settings.as_json(), default=str))
+    return data.get("twin_version") == TWIN_VERSION and data.get("settings") == wanted
 
 
 def _run_local(job: TwinJob, root: str, progress_queue=None) -> TwinDone:

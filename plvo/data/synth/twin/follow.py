@@ -107,21 +107,33 @@ def load_followed(path: str | Path, frames: str | None = None) -> FollowedPath:
     except TrajectoryError as exc:
         raise SynthError(f"--follow: {exc}") from None
     lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip() and not ln.strip().startswith("#")]
-    a, b = parse_range(frames, len(poses), str(path))
+    return followed(poses, str(path), frames, lines)
+
+
+def followed(poses: np.ndarray, source: str, frames: str | None = None,
+             lines: list[str] | None = None) -> FollowedPath:
+    """(F,4,4) KITTI cam0 poses at 10 Hz (a pose file's, or a raw drive's from its oxts) cut to frames A:B; lines:
+    the pose file's rows (None: written from the poses). SynthError names the line (frame) that is wrong."""
+    where = "line" if lines is not None else "frame"
+    first_line = 1 if lines is not None else 0
+    a, b = parse_range(frames, len(poses), source)
     R = poses[a:b, :3, :3]
     bad = np.flatnonzero(np.abs(np.linalg.det(R) - 1.0) > 1e-3)
     if len(bad):
-        raise SynthError(f"{path}: line {a + bad[0] + 1}: the rotation is not a rotation "
+        raise SynthError(f"{source}: {where} {a + bad[0] + first_line}: the rotation is not a rotation "
                          f"(det {np.linalg.det(R[bad[0]]):.4f})")
     step = np.linalg.norm(np.diff(poses[a:b, :3, 3], axis=0), axis=1)
     if len(step) and step.max() > 6.0:
         k = int(np.argmax(step))
-        raise SynthError(f"{path}: line {a + k + 2}: a jump of {step[k]:.1f} m in one frame (> 60 m/s at 10 Hz)")
+        raise SynthError(f"{source}: {where} {a + k + 1 + first_line}: a jump of {step[k]:.1f} m in one frame "
+                         "(> 60 m/s at 10 Hz)")
+    if lines is None:
+        lines = [" ".join(f"{x:.9e}" for x in T[:3].ravel()) for T in poses]
     road = _road(poses)
     step = np.linalg.norm(np.diff(road, axis=0), axis=1) / FRAME_DT
     speed = np.concatenate([step[:1], step]) if len(step) else np.zeros(1)
     context, first, real = _context(poses, a, b)
-    return FollowedPath(str(path), a, poses[a:b].copy(), tuple(lines[a:b]), context, first, real, road, speed)
+    return FollowedPath(source, a, poses[a:b].copy(), tuple(lines[a:b]), context, first, real, road, speed)
 
 
 def _road(T_kitti_cam: np.ndarray) -> np.ndarray:

@@ -15,20 +15,20 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from plvo.data.synth.kitti_calib import CALIB_00_02, KittiCalibration
 from plvo.data.synth.mesh import Town
-from plvo.data.synth.render import AMBIENT, DIFFUSE, MIN_VIEW_COS, NOISE_BANK_EXTRA, OPTICS_BLUR_SIGMA_PX, Renderer
+from plvo.data.synth.render import AMBIENT, DIFFUSE, MIN_VIEW_COS, NOISE_BANK_EXTRA, Renderer
 from plvo.data.synth.textures import MATERIAL_ID, TextureAtlas
+from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism, Exposure, develop
 from plvo.data.synth.twin.follow import PoseInterpolator
 from plvo.data.synth.twin.layout import ZONES, Layout
-from plvo.data.synth.twin.lidars import LidarModel
+from plvo.data.synth.twin.lidars import LidarEffects, LidarModel
 from plvo.data.synth.twin.traffic import Traffic
+from plvo.errors import SynthError
 
 M = MATERIAL_ID
-TARGET_GREY = 0.40  # mean grey below the horizon after exposure
-GAIN_RANGE = (0.5, 2.5)
 EDGE_LINE = (0.30, 0.45)  # road edge line: this far inside the road's edge (m)
 SHADOW_EPS_M = 0.03
-SHOULDER = 0.6
 _VERGE_MAT = {"pavement": M["pavement"], "grass": M["foliage"]}
 _ZONE_VERGE = np.array([_VERGE_MAT[z.verge] for z in ZONES], np.int32)
 
@@ -41,8 +41,11 @@ def twin_sun(seed: int) -> np.ndarray:
 
 class TwinRenderer(Renderer):
     def __init__(self, town: Town, n_ground: int, layout: Layout, traffic: Traffic, lidar: LidarModel,
-                 atlas: TextureAtlas, seed: int) -> None:
-        super().__init__(town, atlas, seed)
+                 atlas: TextureAtlas, seed: int, calib: KittiCalibration = CALIB_00_02,
+                 lidar_effects: LidarEffects | None = None) -> None:
+        """calib: the camera's intrinsics and image size; lidar_effects: the lidar's imperfections (None: ideal)."""
+        super().__init__(town, atlas, seed, calib.K, calib.width, calib.height)
+        self.lidar_effects = lidar_effects
         self.sun = twin_sun(seed)
         self._ndotsun = town.tri_normal.astype(np.float64) @ self.sun
         self.n_ground, self.layout, self.traffic, self.lidar = n_ground, layout, traffic, lidar
@@ -111,9 +114,12 @@ class TwinRenderer(Renderer):
 
     # ---------------------------------------------------------------- camera
 
-    def render_twin(self, T_town_cam: np.ndarray, time: float, rng: np.random.Generator):
+    def render_twin(self, T_town_cam: np.ndarray, time: float, rng: np.random.Generator,
+                    camera: CameraRealism = IDEAL_CAMERA, poses: PoseInterpolator | None = None, seed: int = 0):
         """-> image (H,W) uint8, depth (H,W) float32 (inf: sky), mover ids (H,W) uint16, shadow edges (H,W) bool,
-        gain (float)."""
+        gain (float). camera: what the camera makes of the scene (twin.camera_effects; IDEAL_CAMERA: the old
+        images); poses: the camera's path, which motion blur over camera.shutter_s needs; seed: the twin's (the
+        rectification's residual warp and the exposure controller's error are fixed per twin)."""
         t, prim, bary, buf = self._cast(self._cam_dirs, T_town_cam)
         origin = T_town_cam[:3, 3].astype(np.float64)
         dirs = buf[:, 3:].astype(np.float64)
@@ -157,43 +163,50 @@ class TwinRenderer(Renderer):
         sky = np.flatnonzero(~np.isfinite(t))
         radiance[sky] = self._sky_radiance(dirs[sky])
         H, W = self.height, self.width
-        img = radiance.reshape(H, W)
-        lower = img[int(self.K[1, 2]):]
-        gain = float(np.clip(TARGET_GREY / max(float(lower.mean()), 1e-3), *GAIN_RANGE))
-        blurred: np.ndarray = cv2.GaussianBlur(tone(img * np.float32(gain)) * np.float32(255.0), (0, 0),
-                                               OPTICS_BLUR_SIGMA_PX)
-        start = int(rng.integers(0, NOISE_BANK_EXTRA))
-        blurred += self._noise[start:start + blurred.size].reshape(blurred.shape)
-        image = np.clip(np.rint(blurred), 0, 255).astype(np.uint8)
         depth = t.reshape(H, W).astype(np.float32)
+        start = int(rng.integers(0, NOISE_BANK_EXTRA))  # drawn whatever the camera: the lidar's draws stay the same
+        T_end = None
+        if camera.shutter_s > 0.0:
+            if poses is None:
+                raise SynthError("render_twin: motion blur (camera.shutter_s > 0) needs the camera's path (poses)")
+            T_end = poses(np.array([time + camera.shutter_s]))[0]
+        frame = Exposure(self.K, time, seed, depth, T_town_cam, T_end, ids.reshape(H, W) == 0, self._noise, start)
+        image, gain = develop(radiance.reshape(H, W), camera, frame,
+                              None if camera.noise_model == "bank" else rng.spawn(1)[0])
         edges = shadow_edges(cast_shadow.reshape(H, W), depth, normal.reshape(H, W, 3))
         return image, depth, ids.reshape(H, W), edges, gain
 
     # ---------------------------------------------------------------- lidar
 
     def scan_twin(self, poses: PoseInterpolator, frame_time: float, T_cam_velo: np.ndarray,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """One rolling sweep -> (N,4) float32 x, y, z, reflectance (each in the sensor frame at its own time) and
-        (N,) uint16 mover ids (0: the static world)."""
+                  rng: np.random.Generator, effects_rng: np.random.Generator | None = None,
+                  compensate: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """One rolling sweep facing forward at frame_time -> (N,4) float32 x, y, z, reflectance and (N,) uint16
+        mover ids (0: the static world). Each return is in the sensor frame at its own time, or with `compensate`
+        at frame_time (motion-compensated). effects_rng draws the lidar effects' dropouts and crown depths. Returns
+        are column by column (ideal) or, with lidar effects, ring by ring from the top beam as KITTI's scans are."""
+        fx = self.lidar_effects
+        cast_dirs = self._lidar_dirs if fx is None else fx.cast_dirs
         col_dt = self._lidar_dt[:: self._beams]
         T_cols = poses(frame_time + col_dt) @ T_cam_velo  # (S,4,4) T_town_velo at each column's time
         R = np.repeat(T_cols[:, :3, :3], self._beams, axis=0)
         o = np.repeat(T_cols[:, :3, 3], self._beams, axis=0)
-        d = np.einsum("kij,kj->ki", R, self._lidar_dirs.astype(np.float64))
+        d = np.einsum("kij,kj->ki", R, cast_dirs.astype(np.float64))
         rays = np.concatenate([o, d], axis=1).astype(np.float32)
         ans = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         t, prim, bary = ans["t_hit"].numpy(), ans["primitive_ids"].numpy(), ans["primitive_uvs"].numpy()
-        tm, ids, mmat, _, mnormal = self.traffic.cast(o, d, frame_time + self._lidar_dt)
+        tm, ids, mmat, mtint, mnormal = self.traffic.cast(o, d, frame_time + self._lidar_dt)
         mover = tm < t
         t = np.where(mover, tm, t)
         ids = np.where(mover, ids, 0).astype(np.uint16)
-        noise = rng.standard_normal(t.shape, dtype=np.float32) * np.float32(self.lidar.range_noise_m)
-        rng_m = t + noise
+        sigma = self.lidar.range_noise_m if fx is None else fx.range_noise_m
+        noise = rng.standard_normal(t.shape, dtype=np.float32) * np.float32(sigma)
+        rng_m = t + noise if fx is None else t + noise + fx.ray_range_bias
         keep = np.flatnonzero(np.isfinite(t) & (rng_m > self.lidar.min_range_m) & (rng_m < self.lidar.max_range_m))
         refl = np.zeros(len(t), np.float32)
         stat = keep[~mover[keep]]
         pid = prim[stat].astype(np.int64)
-        mat, fac, _, u, v = self._surface(pid, bary[stat])
+        mat, fac, tint, u, v = self._surface(pid, bary[stat])
         n = self.town.tri_normal[pid]
         cos = np.abs(np.einsum("ij,ij->i", n, d[stat]))
         r = np.take(self.atlas.mat_lidar, mat)
@@ -207,15 +220,37 @@ class TwinRenderer(Renderer):
         if len(mv):
             cosm = np.abs(np.einsum("ij,ij->i", mnormal[mv], d[mv]))
             refl[mv] = self.atlas.mat_lidar[mmat[mv]] * (0.6 + 0.4 * cosm)
+        if fx is not None:
+            if effects_rng is None:
+                raise ValueError("scan_twin: a lidar with effects needs effects_rng")
+            keep = self._degrade(fx, keep, stat, mv, mat, tint, ground, mmat, mtint, refl, rng_m, effects_rng)
+            # ring by ring from the top beam, each in sweep order, as KITTI stores its scans
+            keep = keep[np.argsort(keep % self._beams, kind="stable")]
         pts = self._lidar_dirs[keep] * rng_m[keep, None]
+        if compensate:
+            # each return from the sensor at its own time into the sensor at frame_time (KITTI's odometry scans)
+            T_ref = poses(np.array([frame_time]))[0] @ T_cam_velo
+            rel = np.linalg.inv(T_ref)[None] @ T_cols  # (S,4,4) T_ref_col
+            col = keep // self._beams
+            p = pts.astype(np.float64)
+            pts = np.einsum("kij,kj->ki", rel[col, :3, :3], p) + rel[col, :3, 3]
         kept = np.round(np.clip(refl[keep], 0.0, 0.99), 2)
         return np.concatenate([pts, kept[:, None]], axis=1).astype(np.float32), ids[keep]
 
-
-def tone(x: np.ndarray) -> np.ndarray:
-    """Linear up to SHOULDER, then a soft roll-off towards 1 (a bright sky keeps its gradient instead of clipping)."""
-    over = np.maximum(x - SHOULDER, 0.0)
-    return np.minimum(x, SHOULDER) + (1.0 - SHOULDER) * (1.0 - np.exp(-over / (1.0 - SHOULDER)))
+    def _degrade(self, fx: LidarEffects, keep, stat, mv, mat, tint, ground, mmat, mtint, refl, rng_m,
+                 effects_rng: np.random.Generator) -> np.ndarray:
+        """The returns that a real sensor would lose dropped from `keep`; returns from tree crowns pushed into
+        them (rng_m changed in place)."""
+        material = np.full(len(refl), -1, np.int32)
+        darkness = refl.copy()
+        material[stat] = mat
+        material[stat[ground]] = -1  # the ground's verge shares foliage's material id but is a surface
+        darkness[stat] *= tint
+        if len(mv):
+            material[mv] = mmat[mv]
+            darkness[mv] *= mtint[mv]
+        rng_m[keep] += fx.crown_depth(material[keep], effects_rng)
+        return keep[~fx.missed(keep, darkness[keep], material[keep], effects_rng)]
 
 
 def shadow_edges(shadow: np.ndarray, depth: np.ndarray, normal: np.ndarray) -> np.ndarray:

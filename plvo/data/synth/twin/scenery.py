@@ -5,6 +5,11 @@ Each kind of object has a world lattice of cells; a cell's own random stream (se
 object, which is pushed out to its distance from the nearest road, turned to face it, and kept if it stands clear
 of every road and of what is already placed (cells in lattice order). Nothing depends on the driving order, so a
 revisit in either direction passes the same houses, trees and parked cars.
+
+How hard the scenery is (leafy crowns and hedges, plain walls, rows of houses of one design, railings) follows a
+SceneryRealism (twin.scenery_realism). Its choices come from streams of their own, keyed by the cell or by the
+ROW square of cells, so they too are the same whichever way the car drives; IDEAL_SCENERY draws nothing extra
+and builds the world as it was before them, triangle for triangle.
 """
 
 from __future__ import annotations
@@ -17,13 +22,15 @@ import numpy as np
 from plvo.data.synth.mesh import MeshBuilder, Town
 from plvo.data.synth.textures import MATERIAL_ID
 from plvo.data.synth.twin import shapes
-from plvo.data.synth.twin.layout import ZONES, Layout
+from plvo.data.synth.twin.layout import ZONE_ID, ZONES, Layout
+from plvo.data.synth.twin.scenery_realism import REALISTIC_SCENERY, SceneryRealism
 
 log = logging.getLogger(__name__)
 M = MATERIAL_ID
 GROUND_STEP_M = 2.0
 GROUND_RADIUS_M = 110.0  # ground is meshed this far from a road (the lidar reaches 80-90 m)
 OCC_RES_M = 0.5
+ROW_TAG, DESIGN_TAG, PLAIN_TAG, RAILING_TAG = 141, 142, 143, 144  # the realism's streams (kinds use 41-49)
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,9 @@ KINDS = (
     Kind("pole", 48, 40.0, (1.5, 4.0)),
     Kind("tree", 49, 9.0, (2.0, 14.0)),
 )
+# Bushes are placed after every other kind (only with a SceneryRealism that asks for them), so they take the room
+# that is left and every object of the ideal world stands where it stood.
+SHRUB = Kind("shrub", 50, 5.0, (0.3, 9.0))
 
 
 class _Occupancy:
@@ -133,14 +143,42 @@ def _proposal(layout: Layout, kind: Kind, seed: int, ix: int, iy: int):
     return rng, ZONES[layout.zone[k]], k, away / norm
 
 
-def _place(b: MeshBuilder, layout: Layout, occ: _Occupancy, kind: Kind, seed: int) -> int:
+def _stream(seed: int, tag: int, ix: int, iy: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([seed, tag, ix + (1 << 20), iy + (1 << 20)]))
+
+
+@dataclass(frozen=True)
+class _Look:
+    """How one proposal looks beyond where it stands: the stream its design is drawn from, plain walls, railing."""
+
+    design: np.random.Generator
+    plain: bool
+    railing: bool
+
+
+def _look(seed: int, kind: Kind, ix: int, iy: int, rng: np.random.Generator, scenery: SceneryRealism) -> _Look:
+    """A building in a row square (scenery.row_m) drawn as a row draws its design from the square's own stream
+    (every house of the row the same sizes, windows and walls); anything else from its cell's."""
+    plain = kind.name in ("building", "wall") and scenery.plain_wall_share > 0 \
+        and _stream(seed, PLAIN_TAG, ix, iy).random() < scenery.plain_wall_share
+    railing = kind.name == "fence" and scenery.railing_share > 0 \
+        and _stream(seed, RAILING_TAG, ix, iy).random() < scenery.railing_share
+    if kind.name == "building" and scenery.facade_row_share > 0:
+        bx, by = (int(np.floor((c + 0.5) * kind.spacing / scenery.row_m)) for c in (ix, iy))
+        square = _stream(seed, ROW_TAG, bx, by)
+        if square.random() < scenery.facade_row_share:
+            return _Look(_stream(seed, DESIGN_TAG, bx, by), bool(square.random() < scenery.plain_wall_share), False)
+    return _Look(rng, bool(plain), bool(railing))
+
+
+def _place(b: MeshBuilder, layout: Layout, occ: _Occupancy, kind: Kind, seed: int, scenery: SceneryRealism) -> int:
     placed = 0
     for ix, iy in _lattice(layout, kind, seed):
         prop = _proposal(layout, kind, seed, ix, iy)
         if prop is None:
             continue
         rng, zone, k, away = prop
-        if _one(b, layout, occ, kind, rng, zone, k, away):
+        if _one(b, layout, occ, kind, rng, zone, k, away, _look(seed, kind, ix, iy, rng, scenery), scenery):
             placed += 1
     return placed
 
@@ -152,7 +190,8 @@ def _clear(layout: Layout, corners: np.ndarray, margin: float) -> bool:
     return bool(layout.clearance(pts).min() >= margin)
 
 
-def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away: np.ndarray) -> bool:
+def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away: np.ndarray, look: _Look,
+         scenery: SceneryRealism) -> bool:
     edge = layout.xy[k] + away * layout.half_width[k]  # the road edge on this side
     tangent = layout.tangent[k]
     if tangent[0] < 0.0 or (tangent[0] == 0.0 and tangent[1] < 0.0):
@@ -161,12 +200,13 @@ def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away
     name = kind.name
     p_of = {"building": zone.building_p, "wall": zone.wall_p, "fence": zone.fence_p, "hedge": zone.hedge_p,
             "parked": zone.parked_p, "lamp": zone.lamp_p, "sign": zone.sign_p, "pole": zone.pole_p,
-            "tree": zone.tree_p}
+            "tree": zone.tree_p, "shrub": scenery.shrub_p[ZONE_ID[zone.name]]}
     if rng.random() >= p_of[name]:
         return False
     if name == "building":
-        w, dp, h = rng.uniform(*zone.width), rng.uniform(*zone.depth), rng.uniform(*zone.height)
-        setback = rng.uniform(*zone.setback)
+        design = look.design
+        w, dp, h = design.uniform(*zone.width), design.uniform(*zone.depth), design.uniform(*zone.height)
+        setback = design.uniform(*zone.setback)
         c = edge + away * (setback + 0.5 * dp + (3.0 if zone.verge == "pavement" else 0.5))
         # wall 0 faces -n of the heading: choose the heading whose left normal points away from the road
         n = np.array([-tangent[1], tangent[0]])
@@ -175,7 +215,7 @@ def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away
         if not (_clear(layout, corners, 1.0) and occ.free(corners, 0.5)):
             return False
         z0 = float(layout.height(corners).min()) - 0.3
-        shapes.building(b, c, yaw_b, w, dp, h + 0.3, z0, rng)
+        shapes.building(b, c, yaw_b, w, dp, h + 0.3, z0, design, look.plain)
         occ.take(corners)
         return True
     off = rng.uniform(*kind.offset)
@@ -188,11 +228,13 @@ def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away
         a, e = p - 0.5 * length * tangent, p + 0.5 * length * tangent
         z0 = float(layout.height(p[None])[0])
         if name == "wall":
-            shapes.wall(b, a, e, z0, rng.uniform(1.5, 3.0) if zone.name == "highway" else rng.uniform(1.0, 2.0), rng)
+            plain = (M["barrier"] if zone.name == "highway" else M["plain_wall"]) if look.plain else None
+            shapes.wall(b, a, e, z0, rng.uniform(1.5, 3.0) if zone.name == "highway" else rng.uniform(1.0, 2.0), rng,
+                        plain)
         elif name == "fence":
-            shapes.fence(b, a, e, z0, rng)
+            shapes.fence(b, a, e, z0, rng, scenery.picket_spacing_m if look.railing else 0.0)
         else:
-            shapes.hedge(b, a, e, z0, rng)
+            shapes.hedge(b, a, e, z0, rng, scenery.hedge_leaf_density, scenery.leaf_size_m)
         occ.take(corners)
         return True
     if name == "parked":
@@ -204,30 +246,37 @@ def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away
         shapes.parked_car(b, p, yaw + (np.pi if rng.random() < 0.5 else 0.0), float(layout.height(p[None])[0]), rng)
         occ.take(corners)
         return True
-    size = {"lamp": 0.5, "sign": 0.5, "pole": 0.6, "tree": 2.0}[name]
+    size = {"lamp": 0.5, "sign": 0.5, "pole": 0.6, "tree": 2.0, "shrub": 2.4}[name]
     corners = shapes.box_corners(p, yaw, size, size)
-    if not (_clear(layout, corners, 0.2 if name != "tree" else 0.5) and occ.free(corners, 0.1)):
+    if not (_clear(layout, corners, 0.2 if name not in ("tree", "shrub") else 0.5) and occ.free(corners, 0.1)):
         return False
     z0 = float(layout.height(p[None])[0])
-    if name == "lamp":
+    if name == "shrub":
+        shapes.shrub(b, p, z0, rng, scenery.shrub_leaf_density, scenery.leaf_size_m)
+    elif name == "lamp":
         shapes.lamp_post(b, p, -away, z0, rng)
     elif name == "sign":
         shapes.sign_post(b, p, -tangent if rng.random() < 0.5 else tangent, z0, rng)
     elif name == "pole":
         shapes.pole(b, p, z0, rng)
     else:
-        shapes.tree(b, p, z0, rng, scale=1.0 if zone.name in ("city", "residential") else rng.uniform(1.0, 1.6))
+        shapes.tree(b, p, z0, rng, scale=1.0 if zone.name in ("city", "residential") else rng.uniform(1.0, 1.6),
+                    leaf_density=scenery.crown_leaf_density, leaf_size=scenery.leaf_size_m)
     occ.take(corners)
     return True
 
 
-def build_world(layout: Layout, seed: int) -> tuple[Town, int, dict]:
-    """The twin's static Town (ground triangles first), the ground's triangle count, and counts per kind."""
+def build_world(layout: Layout, seed: int, scenery: SceneryRealism = REALISTIC_SCENERY) -> tuple[Town, int, dict]:
+    """The twin's static Town (ground triangles first), the ground's triangle count, and counts per kind; the
+    scenery as hard as `scenery` says (IDEAL_SCENERY: the world as it was before those settings)."""
+    scenery.check()
     b = MeshBuilder()
     n_ground = _ground(b, layout)
     occ = _Occupancy(layout.lo - 60.0, layout.hi + 60.0)
     counts = {}
     for kind in KINDS:
-        counts[kind.name] = _place(b, layout, occ, kind, seed)
+        counts[kind.name] = _place(b, layout, occ, kind, seed, scenery)
+    if any(scenery.shrub_p):
+        counts[SHRUB.name] = _place(b, layout, occ, SHRUB, seed, scenery)
     log.info("twin world: %d ground triangles; %s", n_ground, counts)
     return b.build(), n_ground, counts
