@@ -166,7 +166,8 @@ def build_twin(settings: TwinSettings, sequence: str, path: FollowedPath | None 
     traffic = Traffic(layout, path.context_road, path.context_first, path.n_frames, int(n_movers), seed)
     model = lidar_model(settings.lidar)
     effects = None if realism.lidar.is_ideal else LidarEffects(model, realism.lidar, seed)
-    renderer = TwinRenderer(town, n_ground, layout, traffic, model, build_atlas(seed), seed, calib, effects)
+    renderer = TwinRenderer(town, n_ground, layout, traffic, model, build_atlas(seed), seed, calib, effects,
+                             ground=realism.scenery.ground)
     T_cam_velo = calib.T_cam_velo
     E = realism.rig.extrinsic_error(rig_seed(settings.seed, calib.name))
     log.info("twin %s: %d frames, %.0f m, %d triangles, %d movers, %s", sequence, path.n_frames, length,

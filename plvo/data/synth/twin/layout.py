@@ -80,8 +80,26 @@ def _densify(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     return pts, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
+def _canonical_signs(directions: np.ndarray) -> np.ndarray:
+    """(N,2) -> (N,) +1 or -1, the same for a direction and its opposite: the sign that turns it towards larger x
+    (or larger y when it has no x)."""
+    d = np.asarray(directions, np.float64).reshape(-1, 2)
+    return np.where((d[:, 0] > 0.0) | ((d[:, 0] == 0.0) & (d[:, 1] > 0.0)), 1.0, -1.0)
+
+
+def _canonical_arc(xy: np.ndarray) -> np.ndarray:
+    """(K,) arc length of each sample of a polyline, counted from the end with the smaller (x, y): a road and
+    the same road driven the other way get the same arc length at each place."""
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    return arc if (xy[0, 0], xy[0, 1]) <= (xy[-1, 0], xy[-1, 1]) else arc[-1] - arc
+
+
 class Layout:
-    """Road samples (xy, z, unit tangent, zone, whether on the driven path) and queries over them."""
+    """Road samples (xy, z, unit tangent, zone, whether on the driven path, arc length) and queries over them.
+
+    arc: metres along the road at each sample, the same whichever way it is driven (the driven path from its end
+    with the smaller (x, y), a crossing street from its crossing point, signed the same way), which road
+    markings are laid out by."""
 
     def __init__(self, road_points: np.ndarray, speed_xy: np.ndarray, speeds: np.ndarray, seed: int,
                  real: np.ndarray | None = None) -> None:
@@ -102,6 +120,12 @@ class Layout:
         self.tangent = np.concatenate([tang, cross[2]])
         self.zone = np.concatenate([zone, cross[3]]).astype(np.int8)
         self.on_path = np.concatenate([np.ones(len(pts), bool), np.zeros(len(cross[0]), bool)])
+        arc = _canonical_arc(pts[:, :2])
+        forward = len(arc) < 2 or arc[-1] >= arc[0]
+        self.arc = np.concatenate([arc, cross[5]])
+        # the unit direction in which arc grows at each sample
+        self.arc_dir = np.concatenate([tang if forward else -tang,
+                                       cross[2] * _canonical_signs(cross[2])[:, None]])
         self.crossings = cross[4]  # (C, 5): x, y, z of the crossing point, direction x, y of the street
         self.half_width = HALF_WIDTHS[self.zone]
         self.tree = cKDTree(self.xy)
@@ -134,7 +158,7 @@ class Layout:
         the square's seeded point, perpendicular to the path there, flat at the crossing's height."""
         cells = np.floor(pts[:, :2] / CROSS_CELL_M).astype(np.int64)
         keys = np.unique(cells, axis=0)
-        xy, z, tg, zn, info = [], [], [], [], []
+        xy, z, tg, zn, info, arc = [], [], [], [], [], []
         tree = cKDTree(pts[:, :2])
         for ix, iy in keys:
             rng = _cell_rng(self.seed, 32, int(ix), int(iy))
@@ -150,14 +174,24 @@ class Layout:
             tg.append(np.repeat(normal[None], len(s), axis=0))
             zn.append(np.full(len(s), zone[k]))
             info.append([*pts[k], *normal])
+            arc.append(s * _canonical_signs(normal)[0])
         if not xy:
-            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8), np.zeros((0, 5))
-        return np.concatenate(xy), np.concatenate(z), np.concatenate(tg), np.concatenate(zn), np.array(info)
+            return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.int8), np.zeros((0, 5)), \
+                np.zeros(0)
+        return np.concatenate(xy), np.concatenate(z), np.concatenate(tg), np.concatenate(zn), np.array(info), \
+            np.concatenate(arc)
 
     def nearest(self, xy: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(N,2) -> distance to the nearest road sample and its index (len(self.xy) beyond `upper`)."""
         d, k = self.tree.query(np.asarray(xy, np.float64).reshape(-1, 2), distance_upper_bound=upper)
         return d, k
+
+    def road_coords(self, xy: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,2) points and their nearest road samples (N,) -> metres along the road (arc) and signed metres
+        across it (positive to the left of arc_dir), both the same whichever way the road is driven."""
+        rel = np.asarray(xy, np.float64).reshape(-1, 2) - self.xy[k]
+        d = self.arc_dir[k]
+        return self.arc[k] + np.einsum("ij,ij->i", rel, d), d[:, 0] * rel[:, 1] - d[:, 1] * rel[:, 0]
 
     def height(self, xy: np.ndarray) -> np.ndarray:
         """(N,2) -> ground height: a Gaussian-weighted mean of the nearby road heights (smooth, exact on slopes)."""

@@ -8,7 +8,8 @@ scan (KITTI's odometry benchmark) holds every return in the sensor frame at the 
 
 LidarEffects: what a real HDL-64E does to a sweep (twin.realism.LidarRealism): the beams point elsewhere than the
 sensor reports (per-beam elevation biases and the global vertical-angle error), ranges carry per-beam biases and
-noise, dark surfaces and car windows miss returns, tree crowns return from inside.
+noise, dark surfaces and car windows miss returns, tree crowns return from inside; and what KITTI's compensation
+leaves of the sweep's motion (compensation_gain).
 """
 
 from __future__ import annotations
@@ -121,6 +122,20 @@ class LidarEffects:
         self.ray_range_bias = np.tile(self.range_bias_m, model.azimuth_steps).astype(np.float32)
         self.range_noise_m = model.range_noise_m if realism.range_noise_m is None else realism.range_noise_m
         self.ray_clear = ego_return_share(model) if realism.ego_occlusion else None
+        # where the GPS/INS's record clock stands against the twin's clock at time 0, in record periods
+        self.record_phase = float(np.random.default_rng(np.random.SeedSequence([int(seed), 73])).random())
+
+    def compensation_gain(self, reference_time: float) -> float:
+        """The share of the sweep's motion that the compensation of the sweep facing forward at reference_time (s,
+        the twin's clock) removes: it reads the motion between the GPS/INS records nearest the sweep's start and
+        end (KITTI's scans, scripts/kitti_compensation_stats.py), whole record periods against the sweep's
+        realism.compensation_records_a_sweep. The record clock beats against the sweep's, so the gain changes from
+        sweep to sweep (KITTI: 10 / 10.41 or 11 / 10.41) and averages 1. Exact (1) for 0."""
+        n = self.realism.compensation_records_a_sweep
+        if n == 0.0:
+            return 1.0
+        start = (reference_time / SWEEP_S - 0.5) * n + self.record_phase  # the sweep's start, in record periods
+        return float((np.floor(start + n + 0.5) - np.floor(start + 0.5)) / n)
 
     def missed(self, rays: np.ndarray, darkness: np.ndarray, material: np.ndarray,
                rng: np.random.Generator) -> np.ndarray:
@@ -144,7 +159,9 @@ class LidarEffects:
         return {"beam_elevation_bias_deg": [round(float(x), 6) + 0.0 for x in self.elevation_bias_deg],
                 "beam_range_bias_m": [round(float(x), 6) + 0.0 for x in self.range_bias_m],
                 "range_noise_m": self.range_noise_m,
-                "elevation_offset_deg": self.realism.elevation_offset_deg}
+                "elevation_offset_deg": self.realism.elevation_offset_deg,
+                "compensation_records_a_sweep": self.realism.compensation_records_a_sweep,
+                "compensation_record_phase": round(self.record_phase, 6) + 0.0}
 
 
 def sweep_time(azimuth: np.ndarray) -> np.ndarray:

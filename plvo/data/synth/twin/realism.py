@@ -7,12 +7,14 @@ on the real scans come from scripts/lidar_realism_stats.py.
 Lidar (LidarRealism): range noise; each beam's elevation and range bias (the residual of the HDL-64E's intrinsic
 calibration, one seeded draw per beam); KITTI's global vertical-angle error (every return sits elevation_offset_deg
 too low, which readers take out as they do for real KITTI scans); returns missed on dark surfaces and car windows;
-returns scattered from inside tree crowns. Rig (RigRealism): the sequence's own calibration, the camera-lidar
-extrinsic error (the calibration written for the twin is the true one turned and shifted by a seeded draw; the
-sensors are rendered with the true one) and the lidar's time offset (its reference instant this long after the
-camera's, which the files do not state). Sweep: what a scan holds, "as_data" (a twin of the odometry benchmark:
-motion-compensated to the lidar's reference instant; a twin of a raw drive: each return in the sensor frame at its
-own time), "raw" or "compensated". The camera's settings are CameraRealism of twin.camera_effects.
+returns scattered from inside tree crowns; a compensated scan moved with the motion over whole GPS/INS record
+periods instead of the sweep's (scripts/kitti_compensation_stats.py measured it on KITTI's scans). Rig (RigRealism):
+the sequence's own calibration, the camera-lidar extrinsic error (the calibration written for the twin is the true
+one turned and shifted by a seeded draw; the sensors are rendered with the true one) and the lidar's time offset
+(its reference instant this long after the camera's, which the files do not state). Sweep: what a scan holds,
+"as_data" (a twin of the odometry benchmark: motion-compensated to the lidar's reference instant; a twin of a raw
+drive: each return in the sensor frame at its own time), "raw" or "compensated". The camera's settings are
+CameraRealism of twin.camera_effects.
 """
 
 from __future__ import annotations
@@ -40,7 +42,11 @@ class LidarRealism:
     foliage_scatter, foliage_depth_m: the share of returns from closed crowns and hedges (foliage blobs, the
     scenery's at leaf density 0) that come from inside, and their mean depth behind the surface (exponential); a
     leafy crown scatters the rays by its own geometry; ego_occlusion: the recording car's body blocks the lower
-    beams where it does on KITTI's car (twin.lidars.EGO_RETURN_NINTHS)."""
+    beams where it does on KITTI's car (twin.lidars.EGO_RETURN_NINTHS); compensation_records_a_sweep: a
+    compensated scan is moved with the GPS/INS's motion between its records nearest the sweep's start and end, a
+    whole number of record periods, while the sweep lasts this many (KITTI: records every 0.01 s, a sweep of
+    0.1041 s, so 10 or 11 periods: 4 % too little or 6 % too much of the sweep's motion removed, by the beat of the
+    two clocks; twin.lidars.LidarEffects.compensation_gain); 0: the sweep's exact motion."""
 
     range_noise_m: float | None = 0.010
     beam_elevation_sigma_deg: float = 0.07
@@ -53,6 +59,7 @@ class LidarRealism:
     foliage_scatter: float = 0.5
     foliage_depth_m: float = 0.4
     ego_occlusion: bool = True
+    compensation_records_a_sweep: float = 10.41
 
     @property
     def is_ideal(self) -> bool:
@@ -67,6 +74,11 @@ class LidarRealism:
         _check_range("lidar.elevation_offset_deg", self.elevation_offset_deg, -2.0, 2.0)
         for name in ("dropout_floor", "dropout_dark", "dropout_glass", "foliage_scatter"):
             _check_range(f"lidar.{name}", getattr(self, name), 0.0, 1.0)
+        records = self.compensation_records_a_sweep
+        _check_range("lidar.compensation_records_a_sweep", records, 0.0, 1000.0)
+        if 0.0 < records < 1.0:
+            raise SynthError(f"realism lidar.compensation_records_a_sweep = {records!r}: expected 0 (exact) or at "
+                             "least 1 (a record period no longer than the sweep)")
 
     def beam_biases(self, n_beams: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """(B,) elevation biases (deg: the beam points this much above where the sensor reports it) and (B,) range
@@ -87,7 +99,9 @@ class RigRealism:
     calibration: str = "own"
     extrinsic_rotation_deg: float = 0.1
     extrinsic_translation_m: float = 0.01
-    time_offset_s: float = 0.002
+    # measured on the real clips (scripts/kitti_compensation_stats.py): lidar depth edges land on image edges best
+    # with the scans taken 3 ms (04) and 2 ms (0009) before the camera's instant
+    time_offset_s: float = -0.003
 
     def check(self) -> None:
         if self.calibration not in CALIBRATIONS:
@@ -108,7 +122,7 @@ class RigRealism:
 
 IDEAL_LIDAR = LidarRealism(range_noise_m=None, beam_elevation_sigma_deg=0.0, beam_range_sigma_m=0.0,
                            elevation_offset_deg=0.0, dropout_floor=0.0, dropout_dark=0.0, dropout_glass=0.0,
-                           foliage_scatter=0.0, ego_occlusion=False)
+                           foliage_scatter=0.0, ego_occlusion=False, compensation_records_a_sweep=0.0)
 IDEAL_RIG = RigRealism(calibration="00-02", extrinsic_rotation_deg=0.0, extrinsic_translation_m=0.0,
                        time_offset_s=0.0)
 

@@ -21,13 +21,13 @@ from plvo.data.synth.render import AMBIENT, DIFFUSE, MIN_VIEW_COS, NOISE_BANK_EX
 from plvo.data.synth.textures import MATERIAL_ID, TextureAtlas
 from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism, Exposure, develop
 from plvo.data.synth.twin.follow import PoseInterpolator
+from plvo.data.synth.twin.ground import EDGE_LINE, IDEAL_GROUND, GroundRealism, GroundShader
 from plvo.data.synth.twin.layout import ZONES, Layout
 from plvo.data.synth.twin.lidars import LidarEffects, LidarModel
 from plvo.data.synth.twin.traffic import Traffic
 from plvo.errors import SynthError
 
 M = MATERIAL_ID
-EDGE_LINE = (0.30, 0.45)  # road edge line: this far inside the road's edge (m)
 SHADOW_EPS_M = 0.03
 _VERGE_MAT = {"pavement": M["pavement"], "grass": M["foliage"]}
 _ZONE_VERGE = np.array([_VERGE_MAT[z.verge] for z in ZONES], np.int32)
@@ -42,9 +42,11 @@ def twin_sun(seed: int) -> np.ndarray:
 class TwinRenderer(Renderer):
     def __init__(self, town: Town, n_ground: int, layout: Layout, traffic: Traffic, lidar: LidarModel,
                  atlas: TextureAtlas, seed: int, calib: KittiCalibration = CALIB_00_02,
-                 lidar_effects: LidarEffects | None = None) -> None:
-        """calib: the camera's intrinsics and image size; lidar_effects: the lidar's imperfections (None: ideal)."""
+                 lidar_effects: LidarEffects | None = None, ground: GroundRealism = IDEAL_GROUND) -> None:
+        """calib: the camera's intrinsics and image size; lidar_effects: the lidar's imperfections (None: ideal);
+        ground: how the ground looks (twin.ground; IDEAL_GROUND: the ideal twins' tiles and edge line)."""
         super().__init__(town, atlas, seed, calib.K, calib.width, calib.height)
+        self._ground_shader = None if ground.is_ideal else GroundShader(ground, layout, atlas, seed)
         self.lidar_effects = lidar_effects
         self.sun = twin_sun(seed)
         self._ndotsun = town.tri_normal.astype(np.float64) @ self.sun
@@ -76,9 +78,16 @@ class TwinRenderer(Renderer):
         cloud = np.clip(c * 0.35, 0.0, 0.5) * np.clip(up * 4.0, 0.0, 1.0)
         return (base + glow) * (1.0 - cloud) + cloud * 0.97
 
-    def _ground(self, xy: np.ndarray, u, v, footprint, lidar: bool = False):
-        """Ground hits (K,2) -> albedo (or lidar reflectance): road, edge line, verge by distance to the road."""
+    def _ground(self, xy: np.ndarray, u, v, footprint, lidar: bool = False, pixel_m=None):
+        """Ground hits (K,2) -> albedo (or lidar reflectance): road, edge line, verge by distance to the road.
+        pixel_m: a camera pixel's size across the line of sight (m), which the realistic ground's markings are
+        filtered over (footprint: along the ground, foreshortened)."""
         d, k = self.layout.nearest(xy)
+        if self._ground_shader is not None:
+            if lidar:
+                return self._ground_shader.reflectance(xy, d, k)
+            return self._ground_shader.albedo(xy, d, k, u, v, footprint,
+                                              footprint if pixel_m is None else pixel_m)
         hw = self.layout.half_width[k]
         zone = self.layout.zone[k]
         inside = d - hw  # < 0 on the road
@@ -143,7 +152,8 @@ class TwinRenderer(Renderer):
         if len(ground):
             gk = stat[ground]
             xy = origin[:2] + t[gk, None] * dirs[gk, :2]
-            alb[ground] = self._ground(xy, u[ground], v[ground], footprint[ground])
+            alb[ground] = self._ground(xy, u[ground], v[ground], footprint[ground],
+                                       pixel_m=dist[ground] / np.float32(self.K[0, 0]))
         albedo[stat] = alb
         normal[stat] = self.town.tri_normal[pid] * np.sign(side[pid])[:, None]
         mv = hit[mover[hit]]
@@ -183,8 +193,10 @@ class TwinRenderer(Renderer):
                   compensate: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """One rolling sweep facing forward at frame_time -> (N,4) float32 x, y, z, reflectance and (N,) uint16
         mover ids (0: the static world). Each return is in the sensor frame at its own time, or with `compensate`
-        at frame_time (motion-compensated). effects_rng draws the lidar effects' dropouts and crown depths. Returns
-        are column by column (ideal) or, with lidar effects, ring by ring from the top beam as KITTI's scans are."""
+        at frame_time (motion-compensated: with lidar effects, by the share of the sweep's motion that KITTI's
+        compensation removes, LidarEffects.compensation_gain). effects_rng draws the lidar effects' dropouts and
+        crown depths. Returns are column by column (ideal) or, with lidar effects, ring by ring from the top beam as
+        KITTI's scans are (each ring in sweep order)."""
         fx = self.lidar_effects
         cast_dirs = self._lidar_dirs if fx is None else fx.cast_dirs
         col_dt = self._lidar_dt[:: self._beams]
@@ -224,13 +236,17 @@ class TwinRenderer(Renderer):
             if effects_rng is None:
                 raise ValueError("scan_twin: a lidar with effects needs effects_rng")
             keep = self._degrade(fx, keep, stat, mv, mat, tint, ground, mmat, mtint, refl, rng_m, effects_rng)
-            # ring by ring from the top beam, each in sweep order, as KITTI stores its scans
+            # ring by ring from the top beam, as KITTI stores its scans (each ring here in sweep order, clockwise
+            # from behind; KITTI's files run each ring counter-clockwise from facing forward)
             keep = keep[np.argsort(keep % self._beams, kind="stable")]
         pts = self._lidar_dirs[keep] * rng_m[keep, None]
         if compensate:
-            # each return from the sensor at its own time into the sensor at frame_time (KITTI's odometry scans)
+            # each return from the sensor at its own time into the sensor at frame_time (KITTI's odometry scans),
+            # with the motion the compensation knows: over whole GPS/INS record periods, a gain on the sweep's times
             T_ref = poses(np.array([frame_time]))[0] @ T_cam_velo
-            rel = np.linalg.inv(T_ref)[None] @ T_cols  # (S,4,4) T_ref_col
+            gain = 1.0 if fx is None else fx.compensation_gain(frame_time)
+            T_known = T_cols if gain == 1.0 else poses(frame_time + gain * col_dt) @ T_cam_velo
+            rel = np.linalg.inv(T_ref)[None] @ T_known  # (S,4,4) T_ref_col as compensated
             col = keep // self._beams
             p = pts.astype(np.float64)
             pts = np.einsum("kij,kj->ki", rel[col, :3, :3], p) + rel[col, :3, 3]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from plvo.data.synth.twin.ground import IDEAL_GROUND, REALISTIC_GROUND, GroundRealism
 from plvo.errors import SynthError
 
 
@@ -38,6 +39,7 @@ class SceneryRealism:
     # city, residential, country, highway (verges, gardens, field edges, embankments)
     shrub_p: tuple[float, float, float, float] = (0.4, 0.4, 0.7, 0.6)
     shrub_leaf_density: float = 3.0
+    ground: GroundRealism = REALISTIC_GROUND  # how the ground looks (twin.ground)
 
     def check(self) -> None:
         """Raise SynthError naming the first field out of range."""
@@ -58,8 +60,12 @@ class SceneryRealism:
             raise SynthError(f"scenery.picket_spacing_m = {self.picket_spacing_m!r}: expected 0.05-1 m")
         if not 9.0 <= self.row_m <= 500.0:
             raise SynthError(f"scenery.row_m = {self.row_m!r}: expected 9-500 m (at least one building cell)")
+        if not isinstance(self.ground, GroundRealism):
+            raise SynthError(f"scenery.ground: expected a twin.ground.GroundRealism, got {self.ground!r}")
+        self.ground.check()
 
 
 IDEAL_SCENERY = SceneryRealism(crown_leaf_density=0.0, hedge_leaf_density=0.0, plain_wall_share=0.0,
-                               facade_row_share=0.0, railing_share=0.0, shrub_p=(0.0, 0.0, 0.0, 0.0))
+                               facade_row_share=0.0, railing_share=0.0, shrub_p=(0.0, 0.0, 0.0, 0.0),
+                               ground=IDEAL_GROUND)
 REALISTIC_SCENERY = SceneryRealism()
