@@ -99,7 +99,7 @@ def test_peers_on_raw_sweeps_run_both_ways_and_report_the_better(tmp_path, monke
     spec = RunSpec(SequenceSource("unused", "straight"), "kiss", "kiss", None)
     result = write_task(execute_task(spec), tmp_path)
     assert result.ok and sorted(calls) == [False, True]
-    deskew = result.details["deskew"]
+    deskew = result.details["ways"]
     assert deskew["reported"] == reported and deskew["judged_by"] == judged_by
     ways = deskew["ways"]
     # each way's figure is its scale error: a path s times too long reads |s - 1| times each segment's length over
@@ -116,18 +116,48 @@ def test_peers_run_once_on_compensated_scans_or_when_told(monkeypatch):
     monkeypatch.setattr(tasks, "run_kiss", _fake_kiss(1.01, 1.03, calls))
     spec = RunSpec(SequenceSource("unused", "straight"), "kiss", "kiss", None)
     out = tasks._method_kiss(_Straight(40, compensated=True), spec)
-    assert calls == [True] and "deskew" not in out.details
+    assert calls == [True] and "ways" not in out.details
     for options in (KissOptions(both_ways=False), KissOptions(deskew=False)):
         calls.clear()
         out = tasks._method_kiss(_Straight(40), replace(spec, kiss=options))
-        assert calls == [options.deskew] and "deskew" not in out.details
+        assert calls == [options.deskew] and "ways" not in out.details
 
 
 def test_without_truth_the_deskewed_run_is_reported():
     runs = {way: tasks.MethodOutput(_path(40, scale), {}, {"loop_closures": k})
             for k, (way, scale) in enumerate(((DESKEWED, 1.03), (NOT_DESKEWED, 1.01)))}
     out = better_way(runs, None)
-    assert out.details["deskew"]["reported"] == DESKEWED and out.details["deskew"]["judged_by"] is None
+    assert out.details["ways"]["reported"] == DESKEWED and out.details["ways"]["judged_by"] is None
     assert out.details["loop_closures"] == 0  # the reported run's own figures stay at the top
-    assert out.details["deskew"]["ways"][NOT_DESKEWED]["details"] == {"loop_closures": 1}
+    assert out.details["ways"]["ways"][NOT_DESKEWED]["details"] == {"loop_closures": 1}
     np.testing.assert_allclose(out.poses, runs[DESKEWED].poses)
+
+
+def test_peers_on_a_lidar_with_kittis_elevation_error_run_with_its_correction_and_without(monkeypatch):
+    """Real KITTI and the realistic twins carry KITTI's 0.205 deg elevation error: the peers run with kiss_icp's own
+    KITTI correction and without, and the run closer to the truth is reported; raw sweeps add both of deskew."""
+    calls: list[tuple[bool, bool]] = []
+
+    def fake(dataset, options):
+        calls.append((options.deskew, options.kitti_correction))
+        poses = _path(len(dataset), 1.01 if options.kitti_correction else 1.03)
+        return KissOutput(poses=poses, lidar_poses=poses, seconds=np.zeros(len(dataset)))
+
+    class Kitti(_Straight):
+        calib = type("Calib", (), {"lidar_elevation_offset_deg": 0.205})()
+
+    monkeypatch.setattr(tasks, "run_kiss", fake)
+    spec = RunSpec(SequenceSource("unused", "straight"), "kiss", "kiss", None)
+    out = tasks._method_kiss(Kitti(40, compensated=True), spec)
+    assert sorted(calls) == [(True, False), (True, True)]
+    ways = out.details["ways"]
+    assert ways["reported"] == tasks.AS_DELIVERED + tasks.CORRECTED and set(ways["ways"]) == {
+        tasks.AS_DELIVERED, tasks.AS_DELIVERED + tasks.CORRECTED}
+    np.testing.assert_allclose(out.poses[-1, 2, 3], 39 * 1.01)
+    calls.clear()
+    out = tasks._method_kiss(Kitti(40), spec)  # raw sweeps as well: four readings
+    assert sorted(calls) == [(False, False), (False, True), (True, False), (True, True)]
+    assert out.details["ways"]["reported"].endswith(tasks.CORRECTED)
+    calls.clear()
+    tasks._method_kiss(_Straight(40, compensated=True), spec)  # no elevation error: one run
+    assert calls == [(True, False)]

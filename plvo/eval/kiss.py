@@ -47,8 +47,9 @@ log = logging.getLogger(__name__)
 class KissOptions:
     """KISS-ICP settings: voxel size (m), max/min range (m), deskew (with the scans' timestamps where they need it,
     see the module doc), kiss_icp's KITTI scan correction, threads (0 = all cores; the runner gives each of its
-    workers a share); both_ways: where the scans are raw sweeps, the evaluation (plvo.eval.tasks) runs it deskewed
-    and not and reports the one closer to the truth (run_kiss itself makes one run, as `deskew` says)."""
+    workers a share); both_ways: where the data allow two readings (raw sweeps: deskewed or not; a lidar with
+    KITTI's elevation error: kiss_icp's correction or not), the evaluation (plvo.eval.tasks) runs each and reports
+    the one closer to the truth (run_kiss itself makes one run, as `deskew` and `kitti_correction` say)."""
 
     voxel_size_m: float = 1.0
     max_range_m: float = 100.0
@@ -164,18 +165,32 @@ def lidar_to_cam0(lidar_poses: np.ndarray, T_cam0_velo: np.ndarray) -> np.ndarra
     return T_cam0_velo @ lidar_poses @ np.linalg.inv(T_cam0_velo)
 
 
+def kitti_corrector():
+    """kiss_icp's own KITTI scan correction (every return raised by its vertical-angle error), as a function of an
+    (N,3) array, for KISS-ICP and KISS-SLAM alike."""
+    from kiss_icp.pybind import kiss_icp_pybind
+
+    def correct(points: np.ndarray) -> np.ndarray:
+        return np.asarray(kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(points)))
+
+    return correct
+
+
+def elevation_error(dataset: Dataset) -> bool:
+    """Whether a dataset's lidar carries KITTI's vertical-angle error (real KITTI, realistic twins): kiss_icp's
+    KITTI correction then applies to it."""
+    calib = getattr(dataset, "calib", None)
+    return float(getattr(calib, "lidar_elevation_offset_deg", 0.0) or 0.0) != 0.0
+
+
 def run_kiss(dataset: Dataset, options: KissOptions | None = None) -> KissOutput:
     """Dataset's scans -> KISS-ICP poses (N,4,4) T_world_cam of cam0, world = cam0 of the dataset's first frame."""
     from kiss_icp.kiss_icp import KissICP
-    from kiss_icp.pybind import kiss_icp_pybind
 
     options = options or KissOptions()
     if len(dataset) == 0:
         raise PlvoError(f"sequence {dataset.sequence}: no frames for KISS-ICP")
-    correct = None
-    if options.kitti_correction:
-        def correct(points: np.ndarray) -> np.ndarray:
-            return np.asarray(kiss_icp_pybind._correct_kitti_scan(kiss_icp_pybind._Vector3dVector(points)))
+    correct = kitti_corrector() if options.kitti_correction else None
 
     odometry = KissICP(config=make_config(options))
     lidar_poses = np.zeros((len(dataset), 4, 4))

@@ -48,7 +48,7 @@ import numpy as np
 
 from plvo.data.dataset import Dataset
 from plvo.errors import PlvoError
-from plvo.eval.kiss import _scan_points, lidar_to_cam0, sweep_end_to_frame_time, timed_scan_reader
+from plvo.eval.kiss import _scan_points, kitti_corrector, lidar_to_cam0, sweep_end_to_frame_time, timed_scan_reader
 
 log = logging.getLogger(__name__)
 
@@ -57,12 +57,14 @@ log = logging.getLogger(__name__)
 class KissSlamOptions:
     """KISS-SLAM settings beyond its own defaults: the odometry's threads (0 = all cores; the runner gives each of
     its workers a share, as for KISS-ICP); deskew: give it the scans' timestamps where they need them (as KISS-ICP);
-    both_ways: where the scans are raw sweeps, the evaluation runs it deskewed and not and reports the one closer to
-    the truth (as KissOptions.both_ways)."""
+    both_ways: where the data allow two readings, the evaluation runs each and reports the one closer to the truth
+    (as KissOptions.both_ways); kitti_correction: kiss_icp's KITTI scan correction applied to every scan (as
+    KissOptions.kitti_correction)."""
 
     max_threads: int = 0
     deskew: bool = True
     both_ways: bool = True
+    kitti_correction: bool = False
 
 
 @dataclass(frozen=True)
@@ -186,11 +188,12 @@ def run_kiss_slam(dataset: Dataset, options: KissSlamOptions | None = None) -> K
     seconds = np.zeros(len(dataset))
     no_times = np.zeros(0)  # kiss_icp leaves a scan without timestamps as it is
     read = timed_scan_reader(dataset)
+    correct = kitti_corrector() if options.kitti_correction else None
     back = np.tile(np.eye(4), (len(dataset), 1, 1))  # as KISS-ICP's (plvo.eval.kiss.sweep_end_to_frame_time)
     started_at = time.perf_counter()
     for i in range(len(dataset)):
         scan, times = read(i)
-        points = _scan_points(dataset, scan, i, None)
+        points = _scan_points(dataset, scan, i, correct)
         stamps = times if options.deskew and times is not None else no_times
         back[i] = sweep_end_to_frame_time(stamps, slam.odometry.last_delta)
         with _quiet():

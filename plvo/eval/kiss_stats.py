@@ -31,6 +31,7 @@ from plvo.eval.kiss import (
     KissOptions,
     KissOutput,
     _scan_points,
+    kitti_corrector,
     lidar_to_cam0,
     make_config,
     sweep_end_to_frame_time,
@@ -92,8 +93,6 @@ def run_kiss_stats(dataset: Dataset, options: KissOptions | None = None) -> tupl
     from kiss_icp.kiss_icp import KissICP
 
     options = options or KissOptions()
-    if options.kitti_correction:
-        raise PlvoError("KISS-ICP statistics: the KITTI scan correction is not supported here")
     if len(dataset) == 0:
         raise PlvoError(f"sequence {dataset.sequence}: no frames for KISS-ICP")
     odometry = KissICP(config=make_config(options))
@@ -104,10 +103,11 @@ def run_kiss_stats(dataset: Dataset, options: KissOptions | None = None) -> tupl
     per_frame = {k: np.full(n, np.nan) for k in KISS_FIELDS}
     back = np.tile(np.eye(4), (n, 1, 1))
     read, no_times = timed_scan_reader(dataset), np.zeros(0)
+    correct = kitti_corrector() if options.kitti_correction else None
     started_at = time.perf_counter()
     for i in range(n):
         scan, times = read(i)
-        points = _scan_points(dataset, scan, i, None)
+        points = _scan_points(dataset, scan, i, correct)
         stamps = times if options.deskew and times is not None else no_times
         back[i] = sweep_end_to_frame_time(stamps, odometry.last_delta)
         t0 = time.perf_counter()

@@ -8,25 +8,25 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from plvo.data.dataset import Dataset
-from plvo.eval.kiss import KissOptions, raw_sweeps
+from plvo.eval.kiss import KissOptions
 from plvo.eval.kiss_stats import kiss_summary, run_kiss_stats
 from plvo.eval.kitti_metric import evaluate_sequence
 from plvo.eval.stage_stats import StageStatsRecorder, backend_moves, drift_stats
 from plvo.eval.tasks import (
     DESKEWED,
-    NOT_DESKEWED,
     MethodOutput,
     RunSpec,
     SequenceSource,
     anchor,
     better_way,
     metrics_dict,
+    peer_ways,
     plvo_config,
     run_details,
 )
@@ -101,20 +101,19 @@ def run_plvo_side(dataset: Dataset, spec: RunSpec) -> tuple[dict[str, Any], dict
 
 
 def run_kiss_side(dataset: Dataset, options: KissOptions) -> tuple[str, dict[str, dict[str, Any]]]:
-    """KISS-ICP on a dataset as `plvo eval run` runs it: on raw sweeps deskewed and not, the way closer to the truth
-    reported (plvo.eval.tasks.better_way) -> (the way reported, way -> {"stats", "accuracy"})."""
-    ways = {DESKEWED: options}
-    if options.both_ways and options.deskew and raw_sweeps(dataset):
-        ways[NOT_DESKEWED] = replace(options, deskew=False)
+    """KISS-ICP on a dataset as `plvo eval run` runs it: in every reading the data allow (plvo.eval.tasks.peer_ways),
+    the way closer to the truth reported (plvo.eval.tasks.better_way) -> (the way reported, way -> {"stats",
+    "accuracy"})."""
+    ways = peer_ways(dataset, options)
     runs, outputs = {}, {}
     for way, opts in ways.items():
         out, per_frame = run_kiss_stats(dataset, opts)
         outputs[way] = MethodOutput(out.poses)
         runs[way] = {"stats": kiss_summary(per_frame, dataset.frame_indices, _gt_cam0(dataset), out.poses),
                      "accuracy": _accuracy(dataset, out.poses)}
-    reported = DESKEWED
+    reported = next(iter(runs))
     if len(runs) > 1:
-        reported = better_way(outputs, dataset.gt_T_world_cam, dataset.sequence).details["deskew"]["reported"]
+        reported = better_way(outputs, dataset.gt_T_world_cam, dataset.sequence).details["ways"]["reported"]
     return reported, runs
 
 
