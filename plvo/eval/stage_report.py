@@ -164,6 +164,7 @@ def report_markdown(data: Mapping[str, Any], command: str = "") -> str:
             lines += ["", "Heading offsets taken out: " + "; ".join(offsets) + "."]
         lines.append("")
     lines += _kiss_ways(data)
+    lines += _shared(data)
     lines += ["## What stands out", ""]
     for system, name in SYSTEMS.items():
         top = standing_out(data[system])
@@ -183,6 +184,27 @@ def report_markdown(data: Mapping[str, Any], command: str = "") -> str:
                          f"{_ratio_cell(r)} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _shared(data: Mapping[str, Any]) -> list[str]:
+    """The table of what plvo's and KISS-ICP's segment errors share on each side (plvo.eval.shared_error)."""
+    rows = [(side, length, v) for side in ("real", "twin") for length, v in (data[side].get("shared") or {}).items()]
+    if not rows:
+        return []
+    lines = ["## What plvo's and KISS-ICP's errors share", "",
+             "Per segment length: the correlation of the two systems' segment errors and the rms of their shared part "
+             "by axis (x right, y down, z ahead; % of the length, the heading offset taken out), and each system's "
+             "own error (rms over segments, the shared part taken out) beside its whole one. Two independent "
+             "systems share only what neither made: the truth's own errors, or something both read in the scans "
+             "(plvo.eval.shared_error).", "",
+             "| side | length m | correlation x / y / z | shared x / y / z | plvo own / whole | KISS-ICP own / whole |",
+             "|---|---:|---|---|---|---|"]
+    for side, length, v in rows:
+        corr = " / ".join(_num(c) for c in v["correlation"])
+        shared = " / ".join(_num(c) for c in v["shared_rms"])
+        lines.append(f"| {side} | {length} | {corr} | {shared} | {_num(v['own_a_norm'])} / {_num(v['total_a_norm'])} "
+                     f"| {_num(v['own_b_norm'])} / {_num(v['total_b_norm'])} |")
+    return [*lines, ""]
 
 
 _WAY_STATS = ("kiss_plane_residual_m", "kiss_correction_m", "drift_final_yaw_deg_per_100m",

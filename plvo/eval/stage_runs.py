@@ -17,6 +17,7 @@ from plvo.data.dataset import Dataset
 from plvo.eval.kiss import KissOptions
 from plvo.eval.kiss_stats import kiss_summary, run_kiss_stats
 from plvo.eval.kitti_metric import evaluate_sequence
+from plvo.eval.shared_error import shared_error
 from plvo.eval.stage_stats import StageStatsRecorder, backend_moves, drift_stats
 from plvo.eval.tasks import (
     DESKEWED,
@@ -37,7 +38,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class SideResult:
     """A sequence's statistics: plvo's and KISS-ICP's (name -> plvo.eval.stage_stats.describe entry), each system's
-    accuracy (accuracy_figures; {} without ground truth) and plvo's run details (keyframes, losses, stage drift)."""
+    accuracy (accuracy_figures; {} without ground truth), plvo's run details (keyframes, losses, stage drift), the
+    peer's ways and what the two systems' errors share."""
 
     source: SequenceSource
     n_frames: int
@@ -47,10 +49,13 @@ class SideResult:
     plvo_details: Mapping[str, Any] = field(default_factory=dict)
     kiss_way: str = DESKEWED
     kiss_ways: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    # what plvo's and KISS-ICP's errors share (plvo.eval.shared_error; a = plvo, b = KISS-ICP), by segment length
+    shared: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"source": asdict(self.source), "n_frames": self.n_frames, "accuracy": dict(self.accuracy),
-                "plvo_details": dict(self.plvo_details), "kiss_way": self.kiss_way, "kiss_ways": dict(self.kiss_ways)}
+                "plvo_details": dict(self.plvo_details), "kiss_way": self.kiss_way, "kiss_ways": dict(self.kiss_ways),
+                "shared": dict(self.shared)}
 
 
 def accuracy_figures(metrics: Mapping[str, Any]) -> dict[str, Any]:
@@ -97,6 +102,7 @@ def run_plvo_side(dataset: Dataset, spec: RunSpec) -> tuple[dict[str, Any], dict
     stats.update(backend_moves(out.stage_steps))
     if "stage_drift" in details:
         stats.update(drift_stats(details["stage_drift"]))
+    details["poses"] = poses  # for shared_error; run_side takes it out again
     return stats, _accuracy(dataset, poses), details
 
 
@@ -110,7 +116,7 @@ def run_kiss_side(dataset: Dataset, options: KissOptions) -> tuple[str, dict[str
         out, per_frame = run_kiss_stats(dataset, opts)
         outputs[way] = MethodOutput(out.poses)
         runs[way] = {"stats": kiss_summary(per_frame, dataset.frame_indices, _gt_cam0(dataset), out.poses),
-                     "accuracy": _accuracy(dataset, out.poses)}
+                     "accuracy": _accuracy(dataset, out.poses), "poses": out.poses}
     reported = next(iter(runs))
     if len(runs) > 1:
         reported = better_way(outputs, dataset.gt_T_world_cam, dataset.sequence).details["ways"]["reported"]
@@ -126,4 +132,9 @@ def run_side(source: SequenceSource, spec: RunSpec | None = None, kiss: KissOpti
     log.info("%s: KISS-ICP on %d frames", source.name, len(dataset))
     way, kiss_ways = run_kiss_side(dataset, kiss or spec.kiss)
     accuracy = {k: v for k, v in (("plvo", plvo_acc), ("kiss", kiss_ways[way]["accuracy"])) if v}
-    return SideResult(source, len(dataset), plvo_stats, kiss_ways[way]["stats"], accuracy, details, way, kiss_ways)
+    plvo_poses = details.pop("poses")
+    kiss_poses = {w: run.pop("poses") for w, run in kiss_ways.items()}[way]
+    gt = dataset.gt_T_world_cam
+    shared = {} if gt is None else shared_error(gt, anchor(plvo_poses, gt[0]), anchor(np.asarray(kiss_poses), gt[0]))
+    return SideResult(source, len(dataset), plvo_stats, kiss_ways[way]["stats"], accuracy, details, way, kiss_ways,
+                      shared)
