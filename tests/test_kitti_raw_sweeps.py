@@ -80,10 +80,18 @@ def test_plvo_deskews_a_raw_drive_with_its_times_and_the_tracked_motion(raw_root
 
     monkeypatch.setattr(Sweep, "apply", spy)
     out = run_dataset(ds, merge(SystemConfig(), {"backend": {"concurrent": False}}))
-    assert out.keyframe_frames == (0, 3) and len(applied) == 2  # each keyframe's scan, once for both workers
+    assert out.keyframe_frames == (0, 3)
+    # the registration's (the motion after the frame known) and the depth priors' (frontend.prior_scan: the returns
+    # ahead, with the motion before the frame only; none at frame 0, where there is no motion before it)
+    registered = [a for a in applied if a[0].after is not None]
+    priors = [a for a in applied if a[0].after is None]
+    assert len(registered) == 2 and len(priors) == 1  # each keyframe's scan once for both workers
+    ahead = ds[3].scan[:, 0] > 0.0
+    np.testing.assert_array_equal(priors[0][0].times, ds[3].scan_time[ahead])
     gt = ds.gt_T_world_cam
     speed = np.linalg.norm(gt[4, :3, 3] - gt[0, :3, 3]) / (ds.times[4] - ds.times[0])  # 10.6 m/s
-    first, second = applied
+    assert np.linalg.norm(priors[0][0].before[:3]) == pytest.approx(speed, rel=0.1)
+    first, second = registered
     assert first[0].before is None and first[0].after is not None  # frame 0: only the motion after it is known
     sweep, moved = second
     assert sweep.before is not None and sweep.after is not None
