@@ -182,6 +182,10 @@ class BackendConfig:
     # elevation error, a real scene) 1 mm (0.1 mm put it behind KISS-ICP); a third power meets both.
     relative_pose_residual_m: float = 0.04
     relative_pose_residual_power: float = 3.0
+    # The rotation's sigma grows with its own, smaller power: a rougher surface leaves an alignment's translation
+    # sliding along the scene, not its rotation (lever arms of tens of metres), and a weaker rotation factor lets the
+    # tracker's heading pull the trajectory (docs/results/rotation_weight/).
+    relative_rotation_residual_power: float = 3.0
     # Virtual baseline of the depth-prior (stereo-form) point factors: their depth weight grows with b^2. KITTI's
     # 0.54: a smaller one gave worse rotations on 04 and worse errors on the towns (docs/results/defaults.md).
     stereo_baseline_m: float = 0.54

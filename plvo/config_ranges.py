@@ -82,6 +82,7 @@ RANGES: dict[str, Range] = {
     "backend.window_keyframes": Range(2), "backend.sigma_point_px": POSITIVE, "backend.sigma_line": POSITIVE,
     "backend.sigma_relative_pose": POSITIVE, "backend.sigma_relative_rotation_deg": POSITIVE,
     "backend.relative_pose_residual_m": POSITIVE, "backend.relative_pose_residual_power": NON_NEGATIVE,
+    "backend.relative_rotation_residual_power": NON_NEGATIVE,
     "backend.stereo_baseline_m": POSITIVE, "backend.huber_point": POSITIVE, "backend.huber_line": POSITIVE,
     "depth.reference_ring_spacing_px": POSITIVE, "depth.adapt_min_ratio": Range(1.0),
     "depth.adapt_max_ratio": Range(1.0),

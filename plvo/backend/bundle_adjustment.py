@@ -309,7 +309,8 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
     o = sel["rel"]
     if len(o):
         i, j = problem.rel_ij[o, 0], problem.rel_ij[o, 1]
-        r, later = relpose_residuals(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o], problem.rel_weight)
+        r, later = relpose_residuals(T_cw[i], T_cw[j], problem.rel_T[o], problem.rel_zeta[o],
+                                      problem.relative_pose_weights(o))
         b.add(r, (lay.pose[i], lay.pose[j]), later, None)
     return b
 

@@ -297,9 +297,9 @@ def build_graph(
         values.insert(X(k), pose)
         if problem.fixed[k]:
             graph.add(gtsam.NonlinearEqualityPose3(X(k), pose))
-    for (i, j), T_ij, zeta in zip(problem.rel_ij, problem.rel_T, problem.rel_zeta):
+    for r, ((i, j), T_ij, zeta) in enumerate(zip(problem.rel_ij, problem.rel_T, problem.rel_zeta)):
         if zeta > 0 and not (problem.fixed[i] and problem.fixed[j]):
-            w = float(zeta) * np.asarray(problem.rel_weight, dtype=float)
+            w = float(zeta) * problem.relative_pose_weights(np.array([r]))[0]
             noise = gtsam.noiseModel.Diagonal.Precisions(np.r_[w[3:], w[:3]])  # gtsam's tangent is (omega, v)
             graph.add(gtsam.BetweenFactorPose3(X(int(i)), X(int(j)), gtsam.Pose3(T_ij), noise))
     pt_ok, ln_ok = usable_landmarks(problem, use_depth_priors)

@@ -40,7 +40,8 @@ class BAProblem:
     lines (L,2,3) world endpoints; line_obs: ln_kf (M,), ln_idx (M,), ln_seg (M,4) px, ln_prior (M,2,3) endpoints
     in that camera or NaN; relative poses: rel_ij (R,2) keyframe indices (i, j), rel_T (R,4,4) T_cam_i_cam_j,
     rel_zeta (R,) information scale; rel_weight (6,) per-component information in (rho, phi) order shared by all
-    relative-pose factors (information = rel_zeta[r] * diag(rel_weight); ones: the paper's zeta I).
+    relative-pose factors, or (R,6) one row per factor (information = rel_zeta[r] * diag(rel_weight[r]); ones: the
+    paper's zeta I). `relative_pose_weights` gives a factor's row.
     """
 
     K: np.ndarray
@@ -78,7 +79,7 @@ class BAProblem:
         n_r = _check("rel_ij", self.rel_ij, (None, 2)).shape[0]
         _check("rel_T", self.rel_T, (n_r, 4, 4))
         _check("rel_zeta", self.rel_zeta, (n_r,))
-        _check("rel_weight", self.rel_weight, (6,))
+        _check("rel_weight", self.rel_weight, (n_r, 6) if np.ndim(self.rel_weight) == 2 else (6,))
         for name, idx, n in (
             ("pt_kf", self.pt_kf, n_kf), ("pt_idx", self.pt_idx, n_pt), ("ln_kf", self.ln_kf, n_kf),
             ("ln_idx", self.ln_idx, n_ln), ("rel_ij", self.rel_ij, n_kf),
@@ -91,6 +92,11 @@ class BAProblem:
             raise PlvoError("BAProblem: field 'rel_zeta' must be >= 0")
         if np.any(~np.isfinite(self.rel_weight)) or np.any(np.asarray(self.rel_weight) < 0):
             raise PlvoError("BAProblem: field 'rel_weight' must be finite and >= 0")
+
+    def relative_pose_weights(self, rows: np.ndarray) -> np.ndarray:
+        """The per-component information weights (len(rows),6) of the relative-pose factors rows."""
+        w = np.asarray(self.rel_weight, dtype=float)
+        return w[rows] if w.ndim == 2 else np.broadcast_to(w, (len(rows), 6))
 
     @property
     def n_keyframes(self) -> int:

@@ -79,7 +79,7 @@ def relpose_residuals(
     T_ij = T_cw_i @ se3.inv_batch(T_cw_j)
     r = log_batch(se3.inv_batch(T_ij_meas) @ T_ij)
     w = np.ones(6) if weight is None else np.asarray(weight, dtype=float)
-    s = np.sqrt(np.asarray(zeta, dtype=float)[:, None] * w[None, :])  # (N,6) per-row whitening
+    s = np.sqrt(np.asarray(zeta, dtype=float)[:, None] * np.broadcast_to(w, (len(r), 6)))  # (N,6) per-row whitening
 
     def jacobians() -> tuple[np.ndarray, np.ndarray]:
         Ji = adjoint_batch(se3.inv_batch(T_ij))

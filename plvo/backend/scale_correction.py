@@ -35,6 +35,7 @@ def scale_problem(problem: BAProblem, newest_kf: int) -> BAProblem:
         pt_kf=problem.pt_kf[po], pt_idx=problem.pt_idx[po], pt_uv=problem.pt_uv[po], pt_depth=problem.pt_depth[po],
         ln_kf=problem.ln_kf[lo], ln_idx=problem.ln_idx[lo], ln_seg=problem.ln_seg[lo], ln_prior=problem.ln_prior[lo],
         rel_ij=problem.rel_ij[ro], rel_T=problem.rel_T[ro], rel_zeta=problem.rel_zeta[ro],
+        rel_weight=problem.relative_pose_weights(np.flatnonzero(ro)),
     )
 
 

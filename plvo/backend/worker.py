@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -220,8 +221,7 @@ class BackendCore:
         zeta = reg.zeta if reg.converged else 0.0
         log.debug("registration kf %d -> %d: %s, e_hat %.3f e_bar %.3f zeta %.3f (%.0f ms)", j, i, reg.method,
                   reg.e_hat, reg.e_bar, zeta, 1e3 * reg.time_s)
-        return reg, GraphEdge(i, j, reg.T_camdst_camsrc, zeta, EDGE_ODOMETRY, residual_weight(reg.e_bar,
-                                                                                               self.cfg.backend))
+        return reg, registration_edge(i, j, reg.T_camdst_camsrc, zeta, reg.e_bar, self.cfg.backend)
 
     def _register_to_map(self, w: WindowData, kf_id: int, scan: PreparedScan, T_world_cam: np.ndarray
                          ) -> tuple[RegistrationResult | None, GraphEdge | None]:
@@ -248,8 +248,8 @@ class BackendCore:
                 time_s=al.time_s)
             if not al.converged:
                 log.info("registration of keyframe %d to the local map failed: %s", kf_id, al.why)
-            edge = GraphEdge(int(w.kf_ids[prev]), kf_id, reg.T_camdst_camsrc, al.zeta if al.converged else 0.0,
-                             EDGE_ODOMETRY, residual_weight(al.e_bar, self.cfg.backend))
+            edge = registration_edge(int(w.kf_ids[prev]), kf_id, reg.T_camdst_camsrc,
+                                     al.zeta if al.converged else 0.0, al.e_bar, self.cfg.backend)
             log.debug("local map kf %d: e_hat %.3f e_bar %.3f zeta %.3f fitness %.2f (%.0f ms, %d map points)", kf_id,
                       al.e_hat, al.e_bar, al.zeta, al.fitness, 1e3 * al.time_s, al.n_map)
             if al.converged:
@@ -282,14 +282,32 @@ class BackendCore:
             base_version=w.version)
 
 
-def residual_weight(e_bar: float, b: BackendConfig) -> float:
+def residual_weight(e_bar: float, b: BackendConfig, power: float | None = None) -> float:
     """The information factor of a registration edge whose alignment left a residual of e_bar metres (its mean
-    point-to-plane distance): (relative_pose_residual_m / e_bar)^(2 relative_pose_residual_power), so that the
-    factor's standard deviations are sigma_relative_pose / sigma_relative_rotation_deg times
-    (e_bar / relative_pose_residual_m)^power; 1 where e_bar is unknown (a failed alignment, whose zeta is 0)."""
-    if not (np.isfinite(e_bar) and e_bar > 0) or b.relative_pose_residual_power == 0:
+    point-to-plane distance): (relative_pose_residual_m / e_bar)^(2 power), so that the factor's standard
+    deviations are sigma_relative_pose (power: relative_pose_residual_power, the default) or
+    sigma_relative_rotation_deg (relative_rotation_residual_power) times (e_bar / relative_pose_residual_m)^power;
+    1 where e_bar is unknown (a failed alignment, whose zeta is 0)."""
+    power = b.relative_pose_residual_power if power is None else power
+    if not (np.isfinite(e_bar) and e_bar > 0) or power == 0:
         return 1.0
-    return float((b.relative_pose_residual_m / e_bar) ** (2.0 * b.relative_pose_residual_power))
+    return float((b.relative_pose_residual_m / e_bar) ** (2.0 * power))
+
+
+def registration_edge(i: int, j: int, T_i_j: np.ndarray, zeta: float, e_bar: float, b: BackendConfig) -> GraphEdge:
+    """The odometry edge of a registration, its translation and rotation weighed by the alignment's residual."""
+    return GraphEdge(i, j, T_i_j, zeta, EDGE_ODOMETRY, residual_weight(e_bar, b),
+                     residual_weight(e_bar, b, b.relative_rotation_residual_power))
+
+
+def relative_pose_weights(edges: Sequence[GraphEdge], b: BackendConfig) -> np.ndarray:
+    """(len(edges),6) per-component information of the edges' factors in (rho, phi) order, beside their
+    `information` (zeta * weight): the rotation's rows carry rotation_weight / weight."""
+    base = np.r_[np.full(3, b.sigma_relative_pose ** -2), np.full(3, np.radians(b.sigma_relative_rotation_deg) ** -2)]
+    rotation = np.array([e.rotation_weight / e.weight for e in edges], float)
+    out = np.tile(base, (len(edges), 1))
+    out[:, 3:] *= rotation[:, None]
+    return out
 
 
 def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[GraphEdge, ...]) -> BAProblem | None:
@@ -306,8 +324,7 @@ def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[Gr
         args.update(
             rel_ij=np.array([[row[e.i], row[e.j]] for e in edges], int),
             rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([e.information for e in edges]),
-            rel_weight=np.r_[np.full(3, b.sigma_relative_pose**-2),
-                             np.full(3, np.radians(b.sigma_relative_rotation_deg) ** -2)],
+            rel_weight=relative_pose_weights(edges, b),
         )
     return BAProblem(**args)
 

@@ -42,13 +42,14 @@ log = logging.getLogger(__name__)
 
 def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, np.ndarray, float]],
                   obs: Observations, positions: np.ndarray, depth: np.ndarray, cfg: LoopConfig,
-                  backend_cfg: BackendConfig) -> tuple[BAProblem, np.ndarray]:
+                  backend_cfg: BackendConfig, rotation_ratio: np.ndarray | None = None) -> tuple[BAProblem, np.ndarray]:
     """The global problem -> (BAProblem, landmark id of each problem point).
 
     poses (K,4,4) T_world_cam in the order of the closer's keyframes; edges (i, j, T_i_j, zeta) by index into
     poses: relative-pose factors with information zeta x the back end's (`edge_weights` says which zeta);
     obs: point observations whose `keyframe` is already an index into poses; positions (P,3) world positions of
-    np.unique(obs.landmark); depth (len(obs),) z of each observation or NaN.
+    np.unique(obs.landmark); depth (len(obs),) z of each observation or NaN; rotation_ratio (len(edges),) each
+    edge's rotation information against its translation's (GraphEdge.rotation_weight / weight; default 1).
 
     Observations further than cfg.global_ba_max_px from their landmark's projection are left out: the map holds
     some gross ones (where tracking was lost and re-initialised), and 0.1 px factors with a Huber kernel still
@@ -64,6 +65,9 @@ def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, 
     used, pt_idx = np.unique(idx[keep], return_inverse=True)
     weight = np.r_[np.full(3, backend_cfg.sigma_relative_pose ** -2),
                    np.full(3, np.radians(backend_cfg.sigma_relative_rotation_deg) ** -2)]
+    if rotation_ratio is not None:
+        weight = np.tile(weight, (len(edges), 1))
+        weight[:, 3:] *= np.asarray(rotation_ratio, float).reshape(-1, 1)
     log.debug("global BA: %d keyframes, %d edges, %d points, %d of %d observations kept", len(poses), len(edges),
               len(used), int(keep.sum()), len(keep))
     problem = BAProblem(

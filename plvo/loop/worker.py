@@ -159,8 +159,9 @@ class LoopCore:
         depth = d.depth if self.cfg.tracking.use_depth_priors else np.full(len(d.landmark), np.nan)
         obs = Observations(d.landmark, np.searchsorted(ids, d.keyframe), np.zeros(len(d.landmark), np.int64),
                            d.measurement)
-        problem, pt_ids = global_ba.build_problem(self.K, poses, self._edges(ids, d.edges), obs, d.positions, depth,
-                                                   self.cfg.loop, self.cfg.backend)
+        edges, rotation_ratio = self._edges(ids, d.edges)
+        problem, pt_ids = global_ba.build_problem(self.K, poses, edges, obs, d.positions, depth, self.cfg.loop,
+                                                   self.cfg.backend, rotation_ratio)
         # It does the work of the one it superseded too: twice the iterations (not more, so that its cost stays
         # bounded when several loops close in a row).
         iterations = self.cfg.loop.global_ba_iterations * (1 + min(self._skipped, 1))
@@ -181,20 +182,24 @@ class LoopCore:
         self._made.append(correction)
         return LoopOutput(job.frame_index, correction, timings=timings, global_ba=res)
 
-    def _edges(self, ids: np.ndarray, graph: tuple[GraphEdge, ...]) -> list[tuple[int, int, np.ndarray, float]]:
+    def _edges(self, ids: np.ndarray, graph: tuple[GraphEdge, ...]
+               ) -> tuple[list[tuple[int, int, np.ndarray, float]], np.ndarray]:
         """Relative-pose edges (i, j, T_i_j, zeta) by index into ids for the global BA: the back end's
-        registrations where it provides them, else the pose graph's odometry; every loop edge with zeta 1."""
+        registrations where it provides them, else the pose graph's odometry; every loop edge with zeta 1; and
+        each edge's rotation information against its translation's (a registration's as the back end weighed it)."""
         odometry, _ = self.closer.pose_graph_edges()
         row = {int(k): n for n, k in enumerate(ids)}
         weak = global_ba.pose_graph_zeta(self.cfg.loop, self.cfg.backend)
-        registered = [(row[e.i], row[e.j], e.T_i_j, e.information) for e in graph
-                      if e.kind == EDGE_ODOMETRY and e.i in row and e.j in row and e.zeta > 0]
+        odometry_edges = [e for e in graph if e.kind == EDGE_ODOMETRY and e.i in row and e.j in row and e.zeta > 0]
+        registered = [(row[e.i], row[e.j], e.T_i_j, e.information) for e in odometry_edges]
         have = {(i, j) for i, j, _, _ in registered}
         closer_ids = self.closer.poses()[0]
         fallback = [(row[int(closer_ids[i])], row[int(closer_ids[j])], T, weak) for i, j, T in odometry
                     if int(closer_ids[i]) in row and int(closer_ids[j]) in row]
         loops = [(row[e.i], row[e.j], e.T_i_j, 1.0) for e in graph if e.kind == EDGE_LOOP and e.i in row and e.j in row]
-        return registered + [e for e in fallback if (e[0], e[1]) not in have] + loops
+        rest = [e for e in fallback if (e[0], e[1]) not in have] + loops
+        ratio = np.r_[[e.rotation_weight / e.weight for e in odometry_edges], np.ones(len(rest))]
+        return registered + rest, ratio
 
 
 def loop_keyframe(kf: KeyframeInfo, K: np.ndarray) -> LoopKeyframe:

@@ -37,9 +37,9 @@ def _none(shape: tuple[int, ...], dtype: type = float):
 @dataclass(frozen=True)
 class GraphEdge:
     """A relative-pose constraint between keyframes i < j: T_i_j (4,4) maps camera j into camera i; zeta its
-    information weight (0: unusable); kind plvo.results.EDGE_ODOMETRY (a registration) or EDGE_LOOP; weight a
-    further factor of its information, from the alignment's residual (plvo.backend.worker.residual_weight); the
-    optimisations use zeta * weight."""
+    information weight (0: unusable); kind plvo.results.EDGE_ODOMETRY (a registration) or EDGE_LOOP; weight and
+    rotation_weight further factors of its translation's and its rotation's information, from the alignment's
+    residual (plvo.backend.worker.residual_weight); the optimisations use zeta * weight and zeta * rotation_weight."""
 
     i: int
     j: int
@@ -47,10 +47,15 @@ class GraphEdge:
     zeta: float
     kind: int
     weight: float = 1.0
+    rotation_weight: float = 1.0
 
     @property
     def information(self) -> float:
         return self.zeta * self.weight
+
+    @property
+    def rotation_information(self) -> float:
+        return self.zeta * self.rotation_weight
 
 
 @dataclass(frozen=True)
