@@ -93,11 +93,16 @@ def runs(synth_sequence_factory):
         out["no_module"] = run_dataset(ds, with_ablation(base, "no_scale_correction"), rec).poses
         out["no_module_zeta"] = rec.zeta
         # zeta alone weighs the edges here (no residual weight), as the paper has it
-        ndt = merge(base, {"backend": {"lidar_target": "keyframe", "relative_pose_residual_power": 0.0}})
+        ndt = merge(base, {"backend": {"lidar_target": "keyframe", "relative_pose_residual_power": 0.0,
+                                       "relative_rotation_residual_power": 0.0}})
         rec = _Zetas()
         out["full_ndt"] = run_dataset(ds, ndt, rec).poses
         out["full_ndt_zeta"] = rec.zeta
-        weighted = merge(ndt, {"backend": {"relative_pose_residual_power": base.backend.relative_pose_residual_power}})
+        # the residual weight at the translation's power for both: the rotation's default power (1) is gentler and
+        # leaves a corrupted rotation to zeta (the first check below, at the default formula)
+        power = base.backend.relative_pose_residual_power
+        weighted = merge(ndt, {"backend": {"relative_pose_residual_power": power,
+                                           "relative_rotation_residual_power": power}})
         out["full_ndt_weighted"] = run_dataset(ds, weighted, _Zetas()).poses
         run = registration._run
         for formula, name, start in (("inverse", "inverse", ndt), ("paper", "paper", ndt),
@@ -162,7 +167,7 @@ def test_corrupted_registration_gets_small_zeta_and_does_not_pull(runs):
     assert runs["corrupt_paper_zeta"][bad_frame] > 0.3
     pulled = np.linalg.norm(full[:, :3, 3] - runs["corrupt_paper"][:, :3, 3], axis=1).max()
     assert pulled > 0.2, pulled
-    # the residual weight (backend.relative_pose_residual_power) also sees the corrupted alignment, whose residual
-    # grows, and keeps it from pulling even under the paper's formula
+    # the residual weight (backend.relative_pose_residual_power, and the rotation's at the same power) also sees the
+    # corrupted alignment, whose residual grows, and keeps it from pulling even under the paper's formula
     held = np.linalg.norm(runs["full_ndt_weighted"][:, :3, 3] - runs["corrupt_paper_weighted"][:, :3, 3], axis=1)
     assert held.max() < 0.05, held.max()

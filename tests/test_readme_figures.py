@@ -1,5 +1,5 @@
 """The README's real-clip figures are what the commands its result files give produce: each clip run again with
-`plvo eval run` as docs/results/real_clips_b44b7fd/README.md says, every figure of the README's rows compared to two
+`plvo eval run` as docs/results/real_clips_0af3d75/README.md says, every figure of the README's rows compared to two
 decimals (plvo's figures on the real frames are the same to the last bit on the project's machines; the peers' within
 the last shown digit). Reads ../shared/data and skips with a reason where the clips are absent."""
 
