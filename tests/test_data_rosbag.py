@@ -113,7 +113,7 @@ def test_frame_selection_and_pickling(town, tmp_path):
         ds[3]
 
 
-def _compare_runs(ref, bag) -> float:
+def _compare_runs(ref, bag, bound_m: float = 0.01) -> float:
     from plvo.run import run_dataset
 
     # the town's scans are taken at one instant; the bag's sweep times are there to test their fields, so the bag's
@@ -124,7 +124,7 @@ def _compare_runs(ref, bag) -> float:
     drift = np.linalg.norm(ref_run.poses[-1, :3, 3] - ref.gt_T_world_cam[-1, :3, 3])
     assert drift < 1.0  # the run itself is sane
     gap = np.linalg.norm(bag_run.poses[:, :3, 3] - ref_run.poses[:, :3, 3], axis=1).max()
-    assert gap < 0.01, f"bag run differs from the KITTI-layout run by up to {gap:.4f} m"
+    assert gap < bound_m, f"bag run differs from the KITTI-layout run by up to {gap:.4f} m"
     return gap
 
 
@@ -143,7 +143,10 @@ def test_pipeline_on_real_04_bag_matches_kitti_layout_run(kitti_root, tmp_path, 
     # CameraInfo + TF cannot carry the HDL-64E's elevation offset: the user gives it (--lidar-elevation-offset)
     opts = SourceOptions(calib=_calib_file(tmp_path, ref) if by_file else None,
                          lidar_elevation_offset_deg=None if by_file else ref.calib.lidar_elevation_offset_deg)
-    _compare_runs(ref, RosbagDataset(bag, options=opts))
+    # A calibration file gives the KITTI run's numbers to the bit (measured gap 0); CameraInfo and TF carry them in
+    # their own rounding, which moves the 12 frames' trajectory by millimetres (5.6 mm at 254ee23, 10.3 mm at 0af3d75,
+    # whose rotation weight follows the lidar's heading more closely).
+    _compare_runs(ref, RosbagDataset(bag, options=opts), 0.001 if by_file else 0.025)
 
 
 # --- bad bags: one line each, naming the bag, topic or field --------------------------------------------------
