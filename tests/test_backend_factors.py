@@ -6,6 +6,7 @@ import dataclasses
 
 import gtsam
 import numpy as np
+from backend_costs import costs, perturbed_window
 
 from plvo.backend import bundle_adjustment as ba
 from plvo.backend import factors
@@ -129,29 +130,14 @@ def test_gtsam_line_factor_jacobians_match_numeric():
 
 
 def test_fast_solver_cost_equals_gtsam_graph_error():
-    truth = make_synthetic_problem(n_kf=4, n_points=60, n_lines=15, seed=5, prior_fraction=0.5)
-    rng = np.random.default_rng(5)
-    T = truth.T_world_cam.copy()
-    for k in range(1, 4):
-        T[k] = T[k] @ se3.exp(rng.normal(0, 0.01, 6))
-    p = dataclasses.replace(truth, T_world_cam=T, points=truth.points + rng.normal(0, 0.05, truth.points.shape),
-                            lines=truth.lines + rng.normal(0, 0.05, truth.lines.shape), rel_zeta=np.full(3, 0.7))
-    cfg = BackendConfig(huber_point=1e6, huber_line=1e6)  # gtsam's robust model acts per line, ours per observation
-    graph, values, pt_ok, ln_ok, _ = factors.build_graph(p, cfg)
-    lay, sel = ba._Layout(p, pt_ok, ln_ok), ba._select(p, pt_ok, ln_ok, True)
-    sel["origin"] = np.zeros((p.n_lines, 3))
-    U, W = plucker_to_orth(plucker_from_points(p.lines[:, 0], p.lines[:, 1]))
-    T_cw = np.stack([se3.inv(t) for t in p.T_world_cam])
-    ours = ba._evaluate(p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M).cost()
+    p = perturbed_window()
+    # gtsam's robust model acts per line, ours per observation
+    ours, theirs, ln_ok = costs(p, BackendConfig(huber_point=1e6, huber_line=1e6))
     assert ln_ok.sum() >= 5 and ours > 1.0
-    assert abs(ours - graph.error(values)) <= 1e-6 * ours
+    assert abs(ours - theirs) <= 1e-6 * ours
     # and with the robust kernels on, point and relative-pose factors still agree one to one (no lines)
-    cfg = BackendConfig()
-    graph, values, pt_ok, _, _ = factors.build_graph(p, cfg, use_lines=False)
-    no_lines = np.zeros(p.n_lines, bool)
-    lay, sel = ba._Layout(p, pt_ok, no_lines), ba._select(p, pt_ok, no_lines, True)
-    ours = ba._evaluate(p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M).cost()
-    assert abs(ours - graph.error(values)) <= 1e-6 * ours
+    ours, theirs, _ = costs(p, BackendConfig(), use_lines=False)
+    assert abs(ours - theirs) <= 1e-6 * ours
 
 
 def test_relpose_batch_helpers_match_scalar_se3_and_weights_scale_rows():

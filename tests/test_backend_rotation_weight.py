@@ -8,16 +8,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+from backend_costs import costs, perturbed_window
 
-from plvo.backend import bundle_adjustment as ba
-from plvo.backend import factors
 from plvo.backend.bundle_adjustment import optimize
 from plvo.backend.problem import make_synthetic_problem
 from plvo.backend.scale_correction import scale_problem
-from plvo.backend.worker import registration_edge, relative_pose_weights, residual_weight
+from plvo.backend.worker import edge_information, registration_edge, residual_weight
 from plvo.config import BackendConfig
 from plvo.geometry import se3
-from plvo.geometry.lines import plucker_from_points, plucker_to_orth
 
 
 def _base(b: BackendConfig) -> np.ndarray:
@@ -29,8 +27,9 @@ def test_a_rough_alignment_loosens_its_translation_more_than_its_rotation():
                       relative_rotation_residual_power=1.0)
     edge = registration_edge(0, 1, np.eye(4), 0.9, 0.08, b)  # twice the reference residual
     assert edge.weight == pytest.approx(2.0 ** -6) and edge.rotation_weight == pytest.approx(2.0 ** -2)
-    assert edge.information == pytest.approx(0.9 * 2.0 ** -6) and edge.rotation_information == pytest.approx(0.9 / 4)
-    rows = relative_pose_weights([edge, registration_edge(1, 2, np.eye(4), 1.0, 0.04, b)], b)
+    assert edge.information == pytest.approx(0.9 * 2.0 ** -6)
+    assert edge.zeta * edge.rotation_weight == pytest.approx(0.9 / 4) and edge.rotation_ratio == pytest.approx(16)
+    rows = edge_information([edge, registration_edge(1, 2, np.eye(4), 1.0, 0.04, b)], b)
     # beside zeta * weight, the rotation rows carry rotation_weight / weight: 16x for the rough one, 1 at the reference
     np.testing.assert_allclose(rows[0], _base(b) * np.r_[1, 1, 1, 16, 16, 16])
     np.testing.assert_allclose(rows[1], _base(b))
@@ -41,34 +40,19 @@ def test_a_rough_alignment_loosens_its_translation_more_than_its_rotation():
 def test_equal_powers_give_the_shared_weights_bit_for_bit():
     b = BackendConfig(relative_pose_residual_power=3.0, relative_rotation_residual_power=3.0)
     edges = [registration_edge(k, k + 1, np.eye(4), 1.0, e, b) for k, e in enumerate((0.03, 0.07, 0.2, np.nan))]
-    rows = relative_pose_weights(edges, b)
+    rows = edge_information(edges, b)
     assert np.array_equal(rows, np.tile(_base(b), (len(edges), 1)))
 
 
 def test_per_factor_rows_cost_the_same_in_the_fast_solver_and_in_gtsam():
-    truth = make_synthetic_problem(n_kf=4, n_points=60, n_lines=15, seed=5, prior_fraction=0.5)
-    rng = np.random.default_rng(5)
-    T = truth.T_world_cam.copy()
-    for k in range(1, 4):
-        T[k] = T[k] @ se3.exp(rng.normal(0, 0.01, 6))
     # large enough for the relative-pose factors to weigh beside the reprojections
     rows = 1e8 * np.array([[1, 1, 1, 1, 1, 1], [2, 2, 2, 50, 50, 50], [0.1, 0.1, 0.1, 7, 7, 7]], float)
-    p = dataclasses.replace(truth, T_world_cam=T, points=truth.points + rng.normal(0, 0.05, truth.points.shape),
-                            rel_zeta=np.full(3, 0.7), rel_weight=rows)
+    p = dataclasses.replace(perturbed_window(), rel_weight=rows)
     cfg = BackendConfig(huber_point=1e6, huber_line=1e6)
-    graph, values, pt_ok, _, _ = factors.build_graph(p, cfg, use_lines=False)
-    no_lines = np.zeros(p.n_lines, bool)
-    lay, sel = ba._Layout(p, pt_ok, no_lines), ba._select(p, pt_ok, no_lines, True)
-    sel["origin"] = np.zeros((p.n_lines, 3))
-    U, W = plucker_to_orth(plucker_from_points(p.lines[:, 0], p.lines[:, 1]))
-    T_cw = np.stack([se3.inv(t) for t in p.T_world_cam])
-    ours = ba._evaluate(p, T_cw, p.points, U, W, lay, sel, cfg, factors.DEFAULT_STEREO_BASELINE_M).cost()
-    shared = dataclasses.replace(p, rel_weight=np.full(6, 1e8))
-    lay_s, sel_s = ba._Layout(shared, pt_ok, no_lines), ba._select(shared, pt_ok, no_lines, True)
-    sel_s["origin"] = sel["origin"]
-    assert abs(ours - graph.error(values)) <= 1e-6 * ours
+    ours, theirs, _ = costs(p, cfg, use_lines=False)
+    assert abs(ours - theirs) <= 1e-6 * ours
     # the rows matter: the same problem with shared unit weights costs something else
-    other = ba._evaluate(shared, T_cw, p.points, U, W, lay_s, sel_s, cfg, factors.DEFAULT_STEREO_BASELINE_M).cost()
+    other, _, _ = costs(dataclasses.replace(p, rel_weight=np.full(6, 1e8)), cfg, use_lines=False)
     assert abs(other - ours) > 0.1 * ours
     # the scale correction's problem keeps the rows of the newest keyframe's factors
     sp = scale_problem(p, 3)

@@ -128,6 +128,18 @@ class BAResult:
     time_s: float
 
 
+def relative_pose_information(sigma_m: float, sigma_deg: float, rotation_ratio=None) -> np.ndarray:
+    """BAProblem.rel_weight: the (6,) per-component information of relative-pose factors in (rho, phi) order from
+    their translation and rotation sigmas; with rotation_ratio (R,) one row per factor, its rotation's scaled by it
+    (plvo.tracking.corrections.GraphEdge.rotation_ratio)."""
+    base = np.r_[np.full(3, sigma_m ** -2), np.full(3, np.radians(sigma_deg) ** -2)]
+    if rotation_ratio is None:
+        return base
+    out = np.tile(base, (len(rotation_ratio), 1))
+    out[:, 3:] *= np.asarray(rotation_ratio, float).reshape(-1, 1)
+    return out
+
+
 def _rand_rot(rng: np.random.Generator, sigma: float) -> np.ndarray:
     return se3.so3_exp(rng.normal(0.0, sigma, 3))
 

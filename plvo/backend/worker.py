@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.backend.bundle_adjustment import optimize
-from plvo.backend.problem import BAProblem, BAResult
+from plvo.backend.problem import BAProblem, BAResult, relative_pose_information
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
@@ -300,14 +300,11 @@ def registration_edge(i: int, j: int, T_i_j: np.ndarray, zeta: float, e_bar: flo
                      residual_weight(e_bar, b, b.relative_rotation_residual_power))
 
 
-def relative_pose_weights(edges: Sequence[GraphEdge], b: BackendConfig) -> np.ndarray:
-    """(len(edges),6) per-component information of the edges' factors in (rho, phi) order, beside their
-    `information` (zeta * weight): the rotation's rows carry rotation_weight / weight."""
-    base = np.r_[np.full(3, b.sigma_relative_pose ** -2), np.full(3, np.radians(b.sigma_relative_rotation_deg) ** -2)]
-    rotation = np.array([e.rotation_weight / e.weight for e in edges], float)
-    out = np.tile(base, (len(edges), 1))
-    out[:, 3:] *= rotation[:, None]
-    return out
+def edge_information(edges: Sequence[GraphEdge], b: BackendConfig) -> np.ndarray:
+    """BAProblem.rel_weight of the edges' factors, beside their `information` (zeta * weight): one row each, its
+    rotation's scaled by the edge's rotation_ratio."""
+    return relative_pose_information(b.sigma_relative_pose, b.sigma_relative_rotation_deg,
+                                     [e.rotation_ratio for e in edges])
 
 
 def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[GraphEdge, ...]) -> BAProblem | None:
@@ -324,7 +321,7 @@ def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[Gr
         args.update(
             rel_ij=np.array([[row[e.i], row[e.j]] for e in edges], int),
             rel_T=np.stack([e.T_i_j for e in edges]), rel_zeta=np.array([e.information for e in edges]),
-            rel_weight=relative_pose_weights(edges, b),
+            rel_weight=edge_information(edges, b),
         )
     return BAProblem(**args)
 

@@ -30,7 +30,7 @@ import logging
 import numpy as np
 
 from plvo.backend.factors import optimize_gtsam
-from plvo.backend.problem import BAProblem, BAResult
+from plvo.backend.problem import BAProblem, BAResult, relative_pose_information
 from plvo.config import BackendConfig, LoopConfig
 from plvo.geometry import se3
 from plvo.geometry.camera import project
@@ -49,7 +49,7 @@ def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, 
     poses: relative-pose factors with information zeta x the back end's (`edge_weights` says which zeta);
     obs: point observations whose `keyframe` is already an index into poses; positions (P,3) world positions of
     np.unique(obs.landmark); depth (len(obs),) z of each observation or NaN; rotation_ratio (len(edges),) each
-    edge's rotation information against its translation's (GraphEdge.rotation_weight / weight; default 1).
+    edge's rotation information against its translation's (GraphEdge.rotation_ratio; default 1).
 
     Observations further than cfg.global_ba_max_px from their landmark's projection are left out: the map holds
     some gross ones (where tracking was lost and re-initialised), and 0.1 px factors with a Huber kernel still
@@ -63,11 +63,8 @@ def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, 
     keep &= np.bincount(idx[keep], minlength=len(lm_ids))[idx] >= 2  # one view left: nothing to adjust
     keep &= np.isin(idx, point_budget(idx[keep], np.asarray(obs.keyframe, int)[keep], cfg.global_ba_max_points))
     used, pt_idx = np.unique(idx[keep], return_inverse=True)
-    weight = np.r_[np.full(3, backend_cfg.sigma_relative_pose ** -2),
-                   np.full(3, np.radians(backend_cfg.sigma_relative_rotation_deg) ** -2)]
-    if rotation_ratio is not None:
-        weight = np.tile(weight, (len(edges), 1))
-        weight[:, 3:] *= np.asarray(rotation_ratio, float).reshape(-1, 1)
+    weight = relative_pose_information(backend_cfg.sigma_relative_pose, backend_cfg.sigma_relative_rotation_deg,
+                                       rotation_ratio)
     log.debug("global BA: %d keyframes, %d edges, %d points, %d of %d observations kept", len(poses), len(edges),
               len(used), int(keep.sum()), len(keep))
     problem = BAProblem(

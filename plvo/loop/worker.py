@@ -198,7 +198,7 @@ class LoopCore:
                     if int(closer_ids[i]) in row and int(closer_ids[j]) in row]
         loops = [(row[e.i], row[e.j], e.T_i_j, 1.0) for e in graph if e.kind == EDGE_LOOP and e.i in row and e.j in row]
         rest = [e for e in fallback if (e[0], e[1]) not in have] + loops
-        ratio = np.r_[[e.rotation_weight / e.weight for e in odometry_edges], np.ones(len(rest))]
+        ratio = np.r_[[e.rotation_ratio for e in odometry_edges], np.ones(len(rest))]
         return registered + rest, ratio
 
 

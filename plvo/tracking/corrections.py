@@ -54,8 +54,9 @@ class GraphEdge:
         return self.zeta * self.weight
 
     @property
-    def rotation_information(self) -> float:
-        return self.zeta * self.rotation_weight
+    def rotation_ratio(self) -> float:
+        """The rotation's information against the translation's (rotation_weight / weight)."""
+        return self.rotation_weight / self.weight
 
 
 @dataclass(frozen=True)
