@@ -30,8 +30,9 @@ from plvo.geometry import se3
 GAP = 3
 
 
-def samples(root: str, seq: str, frames: str | None, heading_deg: float) -> np.ndarray:
-    """-> (S, 5): triangulated depth, prior depth, u, v, prior plane residual, one row a kept feature."""
+def samples(root: str, seq: str, frames: str | None, heading_deg: float) -> tuple[np.ndarray, float]:
+    """-> ((S, 5): triangulated depth, prior depth, u, v, prior plane residual, one row a kept feature; the image
+    centre's column cx)."""
     cfg = SystemConfig()
     ds = open_dataset(root, seq, frames=parse_frames(frames) if frames else None)
     K, R = ds.calib.K, heading_rotation(np.radians(heading_deg))
@@ -62,7 +63,7 @@ def samples(root: str, seq: str, frames: str | None, heading_deg: float) -> np.n
         prior = priors.point_depth[ia]
         ok = (X[:, 2] > 1) & (Xb[:, 2] > 1) & (err < 1.0) & far_from_foe & np.isfinite(prior)
         rows += [(X[j, 2], prior[j], ua[j, 0], ua[j, 1], priors.point_residual[ia[j]]) for j in np.flatnonzero(ok)]
-    return np.array(rows).reshape(-1, 5)
+    return np.array(rows).reshape(-1, 5), float(ds.calib.cx)
 
 
 def summary(rows: np.ndarray, cx: float) -> list[str]:
@@ -84,9 +85,8 @@ def main() -> None:
     p.add_argument("--frames", default=None)
     p.add_argument("--heading", type=float, default=0.0, help="the truth's heading offset to take out (deg)")
     args = p.parse_args()
-    rows = samples(args.root, args.seq, args.frames, args.heading)
-    ds_cx = open_dataset(args.root, args.seq, frames=parse_frames("0:1")).calib.cx
-    print("\n".join(summary(rows, ds_cx)))
+    rows, cx = samples(args.root, args.seq, args.frames, args.heading)
+    print("\n".join(summary(rows, cx)))
 
 
 if __name__ == "__main__":

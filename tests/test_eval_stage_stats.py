@@ -202,7 +202,7 @@ def test_kiss_statistics_run_kiss_as_it_runs_and_see_range_noise(box_pair):
 def test_kiss_on_raw_sweeps_runs_both_ways_and_reports_the_closer(box_pair):
     ds = KittiOdometry(box_pair[0], "00")
     ds.scans_compensated = False  # read as a twin's sweeps: each return deskewed by its azimuth's time
-    way, ways = run_kiss_side(ds, KissOptions(max_threads=1))
+    way, ways, _ = run_kiss_side(ds, KissOptions(max_threads=1))
     # and with kiss_icp's KITTI correction and without (the pair has no scene.json: read as KITTI's own scans)
     assert set(ways) == {"deskewed", "not_deskewed", "deskewed+elevation_corrected",
                          "not_deskewed+elevation_corrected"}

@@ -88,8 +88,10 @@ def _gt_cam0(dataset: Dataset) -> np.ndarray | None:
     return None if gt is None else gt @ np.linalg.inv(np.asarray(dataset.calib.T_cam0_cam, float))
 
 
-def run_plvo_side(dataset: Dataset, spec: RunSpec) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-    """plvo on a dataset with spec's config (plvo.eval.tasks.plvo_config) -> (statistics, accuracy, run details)."""
+def run_plvo_side(dataset: Dataset, spec: RunSpec
+                  ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], np.ndarray]:
+    """plvo on a dataset with spec's config (plvo.eval.tasks.plvo_config) -> (statistics, accuracy, run details,
+    poses (N,4,4))."""
     from plvo.run import run_dataset
 
     recorder = StageStatsRecorder()
@@ -102,25 +104,25 @@ def run_plvo_side(dataset: Dataset, spec: RunSpec) -> tuple[dict[str, Any], dict
     stats.update(backend_moves(out.stage_steps))
     if "stage_drift" in details:
         stats.update(drift_stats(details["stage_drift"]))
-    details["poses"] = poses  # for shared_error; run_side takes it out again
-    return stats, _accuracy(dataset, poses), details
+    return stats, _accuracy(dataset, poses), details, poses
 
 
-def run_kiss_side(dataset: Dataset, options: KissOptions) -> tuple[str, dict[str, dict[str, Any]]]:
+def run_kiss_side(dataset: Dataset, options: KissOptions
+                  ) -> tuple[str, dict[str, dict[str, Any]], np.ndarray]:
     """KISS-ICP on a dataset as `plvo eval run` runs it: in every reading the data allow (plvo.eval.tasks.peer_ways),
     the way closer to the truth reported (plvo.eval.tasks.better_way) -> (the way reported, way -> {"stats",
-    "accuracy"})."""
+    "accuracy"}, the reported way's poses (N,4,4))."""
     ways = peer_ways(dataset, options)
     runs, outputs = {}, {}
     for way, opts in ways.items():
         out, per_frame = run_kiss_stats(dataset, opts)
         outputs[way] = MethodOutput(out.poses)
         runs[way] = {"stats": kiss_summary(per_frame, dataset.frame_indices, _gt_cam0(dataset), out.poses),
-                     "accuracy": _accuracy(dataset, out.poses), "poses": out.poses}
+                     "accuracy": _accuracy(dataset, out.poses)}
     reported = next(iter(runs))
     if len(runs) > 1:
         reported = better_way(outputs, dataset.gt_T_world_cam, dataset.sequence).details["ways"]["reported"]
-    return reported, runs
+    return reported, runs, np.asarray(outputs[reported].poses)
 
 
 def run_side(source: SequenceSource, spec: RunSpec | None = None, kiss: KissOptions | None = None) -> SideResult:
@@ -128,13 +130,11 @@ def run_side(source: SequenceSource, spec: RunSpec | None = None, kiss: KissOpti
     spec = spec or RunSpec(source)
     dataset = source.open()
     log.info("%s: plvo on %d frames", source.name, len(dataset))
-    plvo_stats, plvo_acc, details = run_plvo_side(dataset, spec)
+    plvo_stats, plvo_acc, details, plvo_poses = run_plvo_side(dataset, spec)
     log.info("%s: KISS-ICP on %d frames", source.name, len(dataset))
-    way, kiss_ways = run_kiss_side(dataset, kiss or spec.kiss)
+    way, kiss_ways, kiss_poses = run_kiss_side(dataset, kiss or spec.kiss)
     accuracy = {k: v for k, v in (("plvo", plvo_acc), ("kiss", kiss_ways[way]["accuracy"])) if v}
-    plvo_poses = details.pop("poses")
-    kiss_poses = {w: run.pop("poses") for w, run in kiss_ways.items()}[way]
     gt = dataset.gt_T_world_cam
-    shared = {} if gt is None else shared_error(gt, anchor(plvo_poses, gt[0]), anchor(np.asarray(kiss_poses), gt[0]))
+    shared = {} if gt is None else shared_error(gt, anchor(plvo_poses, gt[0]), anchor(kiss_poses, gt[0]))
     return SideResult(source, len(dataset), plvo_stats, kiss_ways[way]["stats"], accuracy, details, way, kiss_ways,
                       shared)
