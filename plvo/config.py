@@ -136,6 +136,30 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class CrossCheckConfig:
+    """The camera checked against the lidar (plvo.tracking.lidar_check, docs/crosscheck.md)."""
+
+    enabled: bool = True
+    at_keyframes: bool = True  # every keyframe's motion since the previous keyframe, beside the doubtful frames
+    voxel_m: float = 1.5  # scans downsampled this coarse reach 4 m steps from standing still (lidar_check.py)
+    min_range_m: float = 2.0  # the car's own roof and mirrors
+    max_range_m: float = 80.0
+    min_fitness: float = 0.5  # fewer source points with a target within a voxel: the lidar cannot judge
+    degenerate_ratio: float = 0.02  # translation's information this ill-conditioned: the lidar cannot judge
+    # The camera agrees with the lidar within agree_m plus agree_share of the step and agree_deg
+    agree_m: float = 0.3
+    agree_share: float = 0.1
+    agree_deg: float = 1.5
+    # A step this far from the motion model's (metres plus share of the predicted step; degrees) calls the lidar
+    doubt_m: float = 0.5
+    doubt_share: float = 0.3
+    doubt_deg: float = 3.0
+    frozen_image_grey: float = 0.5  # mean absolute difference (grey levels) below which an image repeats the last
+    still_m: float = 0.05  # the lidar moved less than this: the car stands (a repeated image is then no fault)
+    gap_factor: float = 1.5  # a frame interval this many times the previous one: frames were dropped
+
+
+@dataclass(frozen=True)
 class RegistrationConfig:
     method: str = "ndt"  # "ndt", or "icp" / "gicp" directly
     fallback: str = "icp"  # used when NDT fails; "none" to disable
@@ -328,6 +352,7 @@ class SystemConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    crosscheck: CrossCheckConfig = field(default_factory=CrossCheckConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,6 +31,7 @@ class RunOutput:
     # keyframe, T_match_query (4,4) of the tracked camera) (plvo.eval.revisits judges them against ground truth)
     keyframe_frames: tuple[int, ...] = ()
     loop_edges: tuple[tuple[int, int, np.ndarray], ...] = ()
+    trust: dict = field(default_factory=dict)  # System.trust_summary(): where each frame's pose came from
 
 
 def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
@@ -59,4 +60,5 @@ def run_system(system: System, dataset, progress: Callable[[int], object] | None
     kf_frames = () if m is None else tuple(m.keyframe_frame(k) for k in range(m.n_keyframes))
     loops = () if m is None else tuple((e.i, e.j, e.T_i_j) for e in m.edges if e.kind == EDGE_LOOP)
     return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings), m.n_keyframes if m is not None else 0,
-                     system.n_lost, finished_at, tuple(system.record.stage_steps), kf_frames, loops)
+                     system.n_lost, finished_at, tuple(system.record.stage_steps), kf_frames, loops,
+                     system.trust_summary())

@@ -290,6 +290,8 @@ class System:
 
     def finish(self) -> None:
         """Wait for the workers to process every keyframe, apply and stream what they produced."""
+        if self._frontend is not None:
+            self._frontend.checks.flush()  # the cross-check's episodes still open are warned now
         if self._pending is not None:
             self._submit_pending(None, None)
         self._scheduler.finish()
@@ -311,6 +313,14 @@ class System:
         """(N,4,4) T_world_cam0 of the given frames (what KITTI pose files hold)."""
         assert self.map is not None and self._calib is not None
         return self._frame_poses.cam0(self.map, self._calib, frame_indices)
+
+    def trust_summary(self) -> dict:
+        """How far to trust the trajectory: frames by where their pose came from (the camera; the camera matched
+        again from the lidar's motion; the lidar alone; the motion model after a loss), the cross-check's findings
+        and their episodes (plvo.tracking.lidar_check.CheckLog)."""
+        if self._frontend is None:
+            return {}
+        return self._frontend.checks.summary()
 
     def timing_summary(self) -> dict[str, dict[str, float]]:
         """Per stage: runs, mean, median, 90th percentile and max milliseconds, total seconds."""

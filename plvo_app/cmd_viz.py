@@ -203,8 +203,23 @@ def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict
     tracked, share = tracked_summary(system.frames_done, system.n_lost)
     return {"status": status, "reason": reason, "frames_done": system.frames_done, "frames_total": n_total,
             "frames_tracked": tracked, "tracked_share": round(share, 4), "frames_per_second": fps,
+            **system.trust_summary(),
             "stages": system.timing_summary(),
             "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
+
+
+def trust_line(system) -> str:
+    """The last line's account of where the poses came from, when not all from the camera: ': 48 by the camera,
+    3 by the lidar alone (frozen image 3)'."""
+    summary = system.trust_summary()
+    by = summary.get("frames_by_source", {})
+    if not by or by.get("camera", 0) == system.frames_done:
+        return ""
+    names = {"camera": "by the camera", "camera, seeded by the lidar": "by the camera from the lidar's motion",
+             "lidar": "by the lidar alone", "motion model": "lost (motion model)"}
+    parts = [f"{n} {names[k]}" for k, n in by.items() if n]
+    findings = ", ".join(f"{k} {n}" for k, n in summary.get("findings", {}).items())
+    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "")
 
 
 def _write_poses(out: Path, system, dataset, fmt: str = "kitti") -> None:
@@ -324,7 +339,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
         if error is None and status == "complete":
             tracked, share = tracked_summary(system.frames_done, system.n_lost)
-            print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%})", file=sys.stderr)
+            print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%}){trust_line(system)}",
+                  file=sys.stderr)
             if viewer is not None and not held.seen:
                 held.what = None
                 print(f"serving the run: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)

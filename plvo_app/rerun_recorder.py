@@ -477,11 +477,17 @@ class RerunRecorder:
             self._log(E["tracked_lines"], _Lazy(_strips2d, segs, None, 2.5, inliers=t.line_inlier))
             counts.update(point_landmarks=len(uv), line_landmarks=len(segs), new_points=t.n_new_points,
                           new_lines=t.n_new_lines)
+        source = getattr(t, "source", "camera")  # where the pose came from (plvo.tracking.lidar_check.SOURCES)
+        counts.update(pose_by_lidar=int(source == "lidar"),
+                      pose_lidar_seeded=int(source == "camera, seeded by the lidar"))
         self._scalars("tracking", counts)
         status = getattr(t, "status", "reinitialised" if not t.ok else "tracked")
         if status == "reinitialised" or not t.ok:
             self._text(t.message or f"frame {t.frame_index}: tracking lost", rr.TextLogLevel.WARN)
             self._event("tracking lost")
+        elif source != "camera":
+            self._text(f"frame {t.frame_index}: pose by the {source}: {t.message}", rr.TextLogLevel.WARN)
+            self._event("camera checked against the lidar")
         elif status == "initialised":
             self._text(f"frame {t.frame_index}: initialised from lidar depth ({getattr(t, 'n_new_points', 0)} point "
                        f"and {getattr(t, 'n_new_lines', 0)} line landmarks)")

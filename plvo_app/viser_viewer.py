@@ -406,8 +406,11 @@ class ViserRecorder:
         self._pose = np.asarray(result.T_world_cam, float)
         self.store.put("pose", frame_index, self._pose)
         self._trail.on_tracking(frame_index, self._pose)
+        source = getattr(result, "source", "camera")  # the tracker's FrontendResult: where the pose came from
         if not result.ok:
             self.store.put("log", frame_index, result.message or "tracking lost")
+        elif source != "camera":
+            self.store.put("log", frame_index, f"pose by the {source}: {result.message}")
 
     def _map(self, frame_index: int, result: MapResult) -> None:
         self._put_heavy("map_points", frame_index, np.asarray(result.points, np.float32))

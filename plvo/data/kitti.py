@@ -37,7 +37,8 @@ import pykitti.utils as kitti_utils
 from PIL import Image, UnidentifiedImageError
 
 from plvo.data.dataset import FrameSelection, SelectedFrames, select_frames
-from plvo.data.images import split_gray_color
+from plvo.data.images import read_image_file, split_gray_color
+from plvo.data.pointcloud import check_scan_values
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import CalibrationError, DatasetError, TrajectoryError
 from plvo.geometry import se3
@@ -115,6 +116,16 @@ def _gray8_png(path: Path) -> np.ndarray | None:
         return None
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     return image if image is not None and image.ndim == 2 and image.dtype == np.uint8 else None
+
+
+def _png_bit_depth(path: Path) -> int | None:
+    """A PNG's bit depth from its header (None: not a PNG or unreadable; the reading then names the fault)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError:
+        return None
+    return head[24] if len(head) == 26 and head.startswith(_PNG_SIGNATURE) else None
 
 
 def _check_scan_size(path: Path, frame: int) -> None:
@@ -245,6 +256,12 @@ class _KittiSequence(SelectedFrames):
         colour = self.camera in COLOUR_CAMERAS
         try:
             image = None if colour else _gray8_png(path)
+            if image is None and _png_bit_depth(path) == 16:
+                # PIL's "L" conversion clips 16-bit grey to white; read it whole and scale it on purpose (the high
+                # byte, as a ROS mono16 image is read)
+                image = read_image_file(path, frame)
+                if colour and image.ndim == 2:
+                    image = np.repeat(image[:, :, None], 3, axis=2)
             if image is None:
                 image = np.asarray(kitti_utils.load_image(str(path), mode="RGB" if colour else "L"), dtype=np.uint8)
         except FileNotFoundError:
@@ -277,6 +294,7 @@ class _KittiSequence(SelectedFrames):
         _check_scan_size(path, frame)
         scan = kitti_utils.load_velo_scan(str(path))
         if np.isfinite(scan).all():  # the common case, 40x cheaper than the per-row mask below
+            check_scan_values(scan, path, frame)
             return scan
         bad = ~np.isfinite(scan).all(axis=1)
         if bad.any():

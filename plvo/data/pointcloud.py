@@ -116,7 +116,28 @@ def read_scan_file(path: Path, frame: int) -> np.ndarray:
         scan = scan[~bad]
     if len(scan) == 0:
         raise DatasetError(f"{path}: scan has no finite point (frame {frame})")
+    check_scan_values(scan, path, frame)
     return scan
+
+
+# No automotive lidar measures beyond a few hundred metres; a file whose points lie past this is not x,y,z in
+# metres (float64 or integer data read as float32 give values spread over 1e-30..1e30).
+IMPLAUSIBLE_RANGE_M = 1e4
+_IMPLAUSIBLE_SHARE = 0.01  # a stray return may be garbage; a whole scan's worth is the wrong kind of file
+
+
+def check_scan_values(scan: np.ndarray, path, frame: int) -> None:
+    """Refuse a scan whose coordinates are not plausible metres (DatasetError naming the file and frame)."""
+    far = np.abs(scan[:, :3]).max(axis=1) > IMPLAUSIBLE_RANGE_M
+    share = float(far.mean()) if len(far) else 0.0
+    if share <= _IMPLAUSIBLE_SHARE:
+        return
+    hint = ""
+    if scan.dtype == np.float32 and path is not None and str(path).lower().endswith(".bin"):
+        hint = "; is it float64? KITTI .bin scans are float32 x,y,z,reflectance"
+    raise DatasetError(f"{path}: {100 * share:.0f} % of the points lie beyond {IMPLAUSIBLE_RANGE_M:.0f} m "
+                       f"(largest coordinate {float(np.abs(scan[:, :3]).max()):.3g}): not a scan in metres{hint} "
+                       f"(frame {frame})")
 
 
 def _read_open3d(path: Path, frame: int) -> np.ndarray:

@@ -188,6 +188,7 @@ def run_details(dataset: Dataset, out: Any, poses: np.ndarray) -> dict[str, Any]
     """A plvo run's figures beside its poses: the loops it accepted, keyframes, tracking losses, and with ground
     truth the stage drift and each loop's error."""
     details: dict[str, Any] = {"keyframes": int(out.n_keyframes), "tracking_losses": int(out.n_lost),
+                               "frames_by_source": getattr(out, "trust", {}).get("frames_by_source", {}),
                                "loops_accepted": len(out.loop_edges)}
     gt = dataset.gt_T_world_cam
     if gt is None:

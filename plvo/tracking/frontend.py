@@ -41,6 +41,19 @@ from plvo.tracking import keyframes as kfp
 from plvo.tracking.association import FrameAssociation, search_by_projection
 from plvo.tracking.corrections import RELOCALISED, MapCorrection
 from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
+from plvo.tracking.lidar_check import (
+    CAMERA,
+    CAMERA_SEEDED,
+    LIDAR,
+    PREDICTION,
+    CheckLog,
+    LidarMotion,
+    LidarOdometer,
+    agrees,
+    disagreement,
+    mean_abs_difference,
+    same_scan,
+)
 from plvo.tracking.map import LandmarkMap
 from plvo.tracking.pnpl import refine_pose, snap_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
@@ -49,6 +62,8 @@ from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 log = logging.getLogger(__name__)
 
 INITIALISED, TRACKED, REINITIALISED = "initialised", "tracked", "reinitialised"
+OVERRULED = "overruled"  # the camera's estimate disagreed with the lidar's: the pose is the lidar's (lidar_check)
+HELD = "held"  # the image repeats the previous one while the lidar moves: the pose is the lidar's
 _NONE = np.zeros(0)  # no PnPL residuals (nothing solved); read-only like every result's arrays
 
 
@@ -85,6 +100,8 @@ class FrontendResult(TrackingResult):
     features: FeatureSet | None = None
     keyframe: KeyframeInfo | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    source: str = CAMERA  # where the pose came from (plvo.tracking.lidar_check.SOURCES)
+    lidar: LidarMotion | None = None  # the lidar's registration of the interval, where the tracker asked for it
 
     @property
     def n_point_inliers(self) -> int:
@@ -148,6 +165,15 @@ class Frontend:
         self._last_inliers = 0  # frame-to-frame PnPL inliers of the last tracked frame
         self._kf_tracked: _TrackedAtKeyframe | None = None  # the newest keyframe's matches to older landmarks
         self.uses_lines = not (config.tracking.points_only or not config.tracking.use_depth_priors)
+        # the camera checked against the lidar (plvo.tracking.lidar_check)
+        self.checks = CheckLog(log)
+        self._lidar = LidarOdometer(calib.T_cam_velo, config.crosscheck) if config.crosscheck.enabled else None
+        self._last_input: Frame | None = None  # the previous frame: the other end of a frame's check
+        self._last_kf_input: Frame | None = None  # the newest keyframe's frame: the other end of a keyframe's check
+        self._held: np.ndarray | None = None  # pose of the previous frame when the lidar held it (a repeated image)
+        self._motion_known = False  # a step has been tracked: the motion model predicts something
+        self._prev_dt: float | None = None  # the last interval between frames (s)
+        self._asked: LidarMotion | None = None  # the lidar's last answer
 
     # ---- the per-frame entry point -----------------------------------------------------------------------
     @property
@@ -174,13 +200,36 @@ class Frontend:
             res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
         else:
             res = self._track(frame, feats, timings, self._prev)
+        if self._prev_time is not None and frame.time > self._prev_time:
+            self._prev_dt = frame.time - self._prev_time
         self._prev_time = frame.time
+        self._last_input = frame
+        self.checks.source(res.source)
+        self.checks.frame_done(frame.index)
         timings["total"] = time.perf_counter() - t0
         return dataclasses.replace(res, timings=timings)
 
     def _track(self, frame: Frame, feats: FeatureSet, timings: dict[str, float], prev: _FrameState) -> FrontendResult:
         self._reanchor_to_map(prev)
-        T_pred = prev.T_world_cam @ self._velocity
+        cc, last = self.cfg.crosscheck, self._last_input
+        base = prev.T_world_cam if self._held is None else self._held  # the previous frame's pose
+        velocity, doubts = self._velocity, []
+        dt = None if self._prev_time is None else frame.time - self._prev_time
+        if dt is not None and self._prev_dt and dt > cc.gap_factor * self._prev_dt:
+            velocity = se3.exp(se3.log(self._velocity) * (dt / self._prev_dt))
+            doubts.append("a gap in the frame times")
+            self.checks.note(frame.index, "frames dropped", f"{dt:.3f} s since frame {last.index} against "
+                             f"{self._prev_dt:.3f} s before; the motion model stretched over the gap")
+        T_pred = base @ velocity
+        repeated_scan = last is not None and same_scan(frame.scan, last.scan)
+        if repeated_scan:
+            self.checks.note(frame.index, "scan repeated", f"the scan of frame {last.index} again: no keyframe on it "
+                             "and no check against the lidar")
+        lidar_ok = self._lidar is not None and last is not None and not repeated_scan
+        if lidar_ok and mean_abs_difference(frame.image, last.image) < cc.frozen_image_grey:
+            lidar = self._lidar_motion(last, frame, [velocity, np.eye(4)], timings)
+            if lidar.usable and lidar.step_m > cc.still_m:
+                return self._hold(frame, feats, prev, base, lidar, timings)
         t = time.perf_counter()
         pm, lm = self._match(prev, feats, T_pred)
         corr = self._correspondences(prev, feats, pm, lm)
@@ -191,6 +240,7 @@ class Frontend:
         if not sol.success:
             first = sol.message
             sol, corr = self._rescue(prev, feats, T_pred, corr, timings)
+            doubts.append("a rescue")
             if sol.success:
                 log.info("frame %d: frame-to-frame PnPL failed (%s); recovered (%s)", frame.index, first,
                          sol.message)
@@ -205,17 +255,54 @@ class Frontend:
                 log.info("frame %d: %d inliers with the motion model, %d without it: took the latter", frame.index,
                          sol.n_inliers, alt.n_inliers)
                 sol, corr = alt, alt_corr
+                doubts.append("a rescue")
         if sol.success:
             self._last_inliers = sol.n_inliers
+        lidar, source = None, CAMERA
         if not sol.success:
-            msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
-                   f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
-            log.warning(msg)
-            return self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
-        t = time.perf_counter()
-        T, corr, p_in, l_in = self._search_landmarks(feats, sol.T_world_cam, corr, sol.point_inliers,
-                                                     sol.line_inliers)
-        timings["search"] = time.perf_counter() - t
+            if lidar_ok:  # the lidar's motion instead of the motion model's, and the camera tried again from it
+                lidar = self._lidar_motion(last, frame, [velocity, np.eye(4)], timings)
+            if lidar is not None and lidar.usable:
+                found = self._seeded(prev, feats, base, lidar, timings)
+                if found is None:
+                    return self._overrule(frame, feats, base, base, lidar, "tracking lost", timings, corr)
+                sol, corr, T, p_in, l_in = found
+                pm, lm = _no_matches(), _no_matches()  # the first matching's pairs are not the solution's
+                source = CAMERA_SEEDED
+                self.checks.note(frame.index, "camera re-tracked from the lidar's motion",
+                                 f"tracking was lost ({sol.message}); matched again from the lidar's motion")
+            else:
+                msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
+                       f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
+                log.warning(msg)
+                res = self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
+                return dataclasses.replace(res, source=PREDICTION, lidar=lidar)
+        if source == CAMERA:
+            t = time.perf_counter()
+            T, corr, p_in, l_in = self._search_landmarks(feats, sol.T_world_cam, corr, sol.point_inliers,
+                                                         sol.line_inliers)
+            timings["search"] = time.perf_counter() - t
+            step = se3.inv(base) @ T
+            dm, ddeg = disagreement(velocity, step)
+            if not self._motion_known:
+                doubts.append("no motion model yet")
+            if dm > cc.doubt_m + cc.doubt_share * np.linalg.norm(velocity[:3, 3]) or ddeg > cc.doubt_deg:
+                doubts.append(f"{dm:.2f} m / {ddeg:.1f} deg from the motion model")
+            is_kf = self.policy.decide(frame.index, T, int(p_in.sum() + l_in.sum())).is_keyframe
+            if lidar_ok and (doubts or (is_kf and cc.at_keyframes)):
+                found = self._check(frame, feats, prev, base, T, velocity, bool(doubts), timings)
+                if isinstance(found, FrontendResult):
+                    return found
+                if found is not None:
+                    lidar, (sol, corr, T, p_in, l_in), source = found[0], found[1], CAMERA_SEEDED
+                    pm, lm = _no_matches(), _no_matches()
+                    why = ", ".join(doubts) or "at a keyframe"
+                    self.checks.note(frame.index, "camera corrected by the lidar", f"the camera's motion disagreed "
+                                     f"with the lidar's ({why}); matched again from the lidar's motion")
+                else:
+                    lidar = self._asked
+        self._motion_known = True
+        self._held = None
         assoc = FrameAssociation.empty(feats.n_points, feats.n_lines)
         assoc.point_landmark[corr["p_cur"][p_in]] = corr["p_lm"][p_in]
         assoc.line_landmark[corr["l_cur"][l_in]] = corr["l_lm"][l_in]
@@ -223,11 +310,11 @@ class Frontend:
         kf_track[pm.pairs[:, 1]] = prev.kf_track[pm.pairs[:, 0]]
         self.map.mark_seen(assoc.point_landmark[assoc.point_landmark >= 0],
                            assoc.line_landmark[assoc.line_landmark >= 0], frame.index)
-        self._velocity = se3.inv(prev.T_world_cam) @ T
+        self._velocity = se3.inv(base) @ T
         state = _FrameState(frame.index, feats, T, assoc, kf_track)
         decision = self.policy.decide(frame.index, T, assoc.n_points + assoc.n_lines)
         keyframe, n_new = None, (0, 0)
-        if decision.is_keyframe:
+        if decision.is_keyframe and not repeated_scan:  # a repeated scan's depth would be the previous frame's
             t = time.perf_counter()
             keyframe, n_new = self._make_keyframe(frame, state, decision.reason, from_lidar=False)
             timings["keyframe"] = time.perf_counter() - t
@@ -238,9 +325,85 @@ class Frontend:
                f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers"
                + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
-        return self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
-                            corr, (p_in, l_in), n_new, keyframe, timings,
-                            (sol.point_residuals[sol.point_inliers], sol.line_residuals[sol.line_inliers]))
+        res = self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
+                           corr, (p_in, l_in), n_new, keyframe, timings,
+                           (sol.point_residuals[sol.point_inliers], sol.line_residuals[sol.line_inliers]))
+        return dataclasses.replace(res, source=source, lidar=lidar)
+
+    # ---- the camera checked against the lidar ---------------------------------------------------------------
+    def _lidar_motion(self, src: Frame, dst: Frame, guesses: list[np.ndarray], timings: dict[str, float],
+                      thorough: bool = True) -> LidarMotion:
+        assert self._lidar is not None
+        motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
+        timings["crosscheck"] = timings.get("crosscheck", 0.0) + motion.time_s
+        self._asked = motion
+        return motion
+
+    def _check(self, frame, feats, prev, base, T, velocity, doubted: bool, timings):
+        """The camera's pose T checked against the lidar: over the last frame's interval when the estimate is in
+        doubt, else (at a keyframe) since the newest keyframe. None: they agree (or the lidar cannot judge);
+        (lidar, the camera's solution matched again from the lidar's motion); or the lidar's own pose's result."""
+        kf = self._last_kf_input
+        if doubted or kf is None or self._last_kf_id < 0:
+            src, T_src, guesses = self._last_input, base, [se3.inv(base) @ T, velocity, np.eye(4)]
+        else:
+            T_src = self.map.keyframe_pose(self._last_kf_id)
+            src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
+        lidar = self._lidar_motion(src, frame, guesses, timings, thorough=doubted)
+        if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
+            return None
+        if not doubted:  # a quick look disagreed: a thorough one before the camera is called wrong
+            lidar = self._lidar_motion(src, frame, guesses, timings)
+        if not lidar.usable or agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
+            return None
+        found = self._seeded(prev, feats, T_src, lidar, timings)
+        if found is None:
+            dm, ddeg = disagreement(se3.inv(T_src) @ T, lidar.T_camprev_camcur)
+            return self._overrule(frame, feats, base, T_src, lidar, f"the camera's motion {dm:.2f} m / {ddeg:.1f} deg "
+                                  f"from the lidar's since frame {src.index}", timings)
+        return lidar, found
+
+    def _seeded(self, prev, feats, T_src, lidar: LidarMotion, timings):
+        """The camera's pose matched and solved again from the lidar's motion (the pose of the interval's start
+        T_src times it): (solution, correspondences, T, point inliers, line inliers) when it agrees with the
+        lidar's, else None."""
+        t = time.perf_counter()
+        sol, corr = self._match_and_solve(prev, feats, T_src @ lidar.T_camprev_camcur)
+        found = None
+        if sol.success:
+            T, corr, p_in, l_in = self._search_landmarks(feats, sol.T_world_cam, corr, sol.point_inliers,
+                                                         sol.line_inliers)
+            if agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
+                found = sol, corr, T, p_in, l_in
+        timings["crosscheck"] = timings.get("crosscheck", 0.0) + time.perf_counter() - t
+        return found
+
+    def _overrule(self, frame, feats, base, T_src, lidar: LidarMotion, why: str, timings, corr=None
+                  ) -> FrontendResult:
+        """The lidar's pose for this frame (the camera disagreed and could not be matched again from it), with
+        landmarks made anew from the lidar's depth, as after a tracking loss."""
+        T = T_src @ lidar.T_camprev_camcur
+        self.checks.note(frame.index, "camera overruled by the lidar", f"{why}; poses from the lidar "
+                         f"({lidar.step_m:.2f} m since the check's start), landmarks made anew from its depth")
+        msg = f"frame {frame.index}: camera overruled by the lidar ({why}); re-initialised from the lidar's depth"
+        self._velocity = se3.inv(base) @ T  # base: the previous frame's pose
+        self._held = None
+        res = self._initialise(frame, feats, T, OVERRULED, kfp.OVERRULED, msg, timings, corr)
+        return dataclasses.replace(res, source=LIDAR, lidar=lidar)
+
+    def _hold(self, frame, feats, prev, base, lidar: LidarMotion, timings) -> FrontendResult:
+        """A repeated image while the lidar moves (a frozen camera): the lidar's pose, no keyframe, and the next
+        image tracked against the last real one, predicted from here."""
+        T = base @ lidar.T_camprev_camcur
+        self._held, self._velocity = T, lidar.T_camprev_camcur
+        self.checks.note(frame.index, "frozen image", f"the image repeats the one before while the lidar moves "
+                         f"({lidar.step_m:.2f} m a frame): poses from the lidar")
+        state = _FrameState(frame.index, feats, T, FrameAssociation.empty(feats.n_points, feats.n_lines),
+                            np.full(feats.n_points, -1, np.int64))
+        msg = f"frame {frame.index}: the image repeats the previous one while the lidar moves: pose from the lidar"
+        corr = self._correspondences(state, feats, _no_matches(), _no_matches())
+        res = self._result(frame, state, HELD, msg, "", 0, 0, corr, None, (0, 0), None, timings)
+        return dataclasses.replace(res, source=LIDAR, lidar=lidar)
 
     # ---- matching and correspondences --------------------------------------------------------------------
     def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray | None) -> tuple[Matches, Matches]:
@@ -404,6 +567,8 @@ class Frontend:
         if np.allclose(T_kf, self._last_kf_pose_seen, atol=1e-12):
             return
         prev.T_world_cam = T_kf @ se3.inv(self._last_kf_pose_seen) @ prev.T_world_cam
+        if self._held is not None:
+            self._held = T_kf @ se3.inv(self._last_kf_pose_seen) @ self._held
         self._last_kf_pose_seen = T_kf
 
     # ---- keyframes and landmarks -------------------------------------------------------------------------
@@ -445,6 +610,7 @@ class Frontend:
         self.policy.accept(frame.index, state.T_world_cam)
         state.kf_track = np.arange(feats.n_points)
         self._last_kf, self._last_kf_id = state, kf_id
+        self._last_kf_input = frame
         self._recent_kfs.append(state)
         self._last_kf_pose_seen = state.T_world_cam.copy()
         log.info("frame %d: keyframe %d (%s): %d new point and %d new line landmarks", frame.index, kf_id, reason,

@@ -21,6 +21,7 @@ from plvo.types import DepthPriors, FeatureSet, Frame
 
 FIRST = "first frame"
 LOST = "tracking lost: re-initialised from lidar depth"
+OVERRULED = "camera overruled by the lidar: re-initialised from lidar depth"
 FEW_TRACKED = "few tracked landmarks"
 ROTATION = "large rotation"
 INTERVAL = "interval"
