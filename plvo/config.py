@@ -157,6 +157,15 @@ class CrossCheckConfig:
     frozen_image_grey: float = 0.5  # mean absolute difference (grey levels) below which an image repeats the last
     still_m: float = 0.05  # the lidar moved less than this: the car stands (a repeated image is then no fault)
     gap_factor: float = 1.5  # a frame interval this many times the previous one: frames were dropped
+    # Camera-lidar time offset (plvo.tracking.time_offset): the lidar's scans taken time_offset_s after the images
+    # (stated by the user where known; each scan is then moved to its image's instant); estimated from the checked
+    # intervals' rotations within +-offset_max_s and named when observable (sigma below offset_sigma_s) and over
+    # offset_warn_s from the stated one.
+    time_offset_s: float = 0.0
+    estimate_time_offset: bool = True
+    offset_max_s: float = 0.2
+    offset_sigma_s: float = 0.01
+    offset_warn_s: float = 0.02
 
 
 @dataclass(frozen=True)

@@ -320,7 +320,14 @@ class System:
         and their episodes (plvo.tracking.lidar_check.CheckLog)."""
         if self._frontend is None:
             return {}
-        return self._frontend.checks.summary()
+        out = self._frontend.checks.summary()
+        offset = self._frontend.offset
+        est = None if offset is None else offset.estimate()
+        out["time_offset"] = {"stated_s": self.config.crosscheck.time_offset_s,
+                              "estimate": None if est is None else est.as_dict(),
+                              "found": None if self._frontend.offset_found is None
+                              else self._frontend.offset_found.as_dict()}
+        return out
 
     def timing_summary(self) -> dict[str, dict[str, float]]:
         """Per stage: runs, mean, median, 90th percentile and max milliseconds, total seconds."""

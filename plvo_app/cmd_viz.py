@@ -25,7 +25,16 @@ import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from plvo.config import ABLATIONS, SystemConfig, config_to_dict, config_to_toml, load_config, save_config, with_ablation
+from plvo.config import (
+    ABLATIONS,
+    SystemConfig,
+    config_from_dict,
+    config_to_dict,
+    config_to_toml,
+    load_config,
+    save_config,
+    with_ablation,
+)
 from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
 from plvo_app.guards import Terminated, check_port, deferred_signals, exit_status_of
@@ -52,6 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
     p.add_argument("--ablation", default=None, help=f"one of {', '.join(ABLATIONS)}")
+    p.add_argument("--time-offset", type=float, default=None, metavar="S",
+                   help="the lidar's scans are taken S seconds after the images (negative: before); each scan is "
+                        "moved to its image's instant (crosscheck.time_offset_s; a run names an offset it finds)")
     p.add_argument("--rrd", type=Path, help="recording path; default recordings/<seq>_<time>.rrd")
     p.add_argument("--out", type=Path, help="results folder; default results/<seq>_<time>/")
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")
@@ -108,6 +120,9 @@ def run_info(name: str, dataset, cfg: SystemConfig, command_line: str, /, **extr
 
 def _resolve_config(args: argparse.Namespace) -> SystemConfig:
     cfg = load_config(args.config)
+    if args.time_offset is not None:
+        cfg = config_from_dict({**config_to_dict(cfg), "crosscheck": {**config_to_dict(cfg)["crosscheck"],
+                                                                     "time_offset_s": args.time_offset}})
     return with_ablation(cfg, args.ablation) if args.ablation else cfg
 
 
@@ -214,12 +229,21 @@ def trust_line(system) -> str:
     summary = system.trust_summary()
     by = summary.get("frames_by_source", {})
     if not by or by.get("camera", 0) == system.frames_done:
-        return ""
+        return offset_line(system)
     names = {"camera": "by the camera", "camera, seeded by the lidar": "by the camera from the lidar's motion",
              "lidar": "by the lidar alone", "motion model": "lost (motion model)"}
     parts = [f"{n} {names[k]}" for k, n in by.items() if n]
     findings = ", ".join(f"{k} {n}" for k, n in summary.get("findings", {}).items())
-    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "")
+    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "") + offset_line(system)
+
+
+def offset_line(system) -> str:
+    """A found camera-lidar time offset, as the run's last word on it (empty when none was found)."""
+    found = (system.trust_summary().get("time_offset") or {}).get("found")
+    if not found:
+        return ""
+    return (f"\ncamera-lidar time offset: the scans are taken {found['offset_s']:.3f} s (+- {found['sigma_s']:.3f}) "
+            f"after the images; run again with --time-offset {found['offset_s']:.3f}")
 
 
 def _write_poses(out: Path, system, dataset, fmt: str = "kitti") -> None:

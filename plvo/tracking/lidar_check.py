@@ -109,7 +109,8 @@ class LidarOdometer:
             tight = self._icp(a, b, init, v)
             if best is None or tight.fitness > best.fitness:
                 best = tight
-        T_dst_src = np.asarray(best.transformation, float)
+        assert best is not None
+        T_dst_src = np.asarray(best.transformation, dtype=np.float64)
         T_cam = self._T_cam_velo @ se3.inv(T_dst_src) @ self._T_velo_cam
         # the conditioning only matters where the lidar is to overrule the camera: computed for thorough checks
         cond = _conditioning(a, b, T_dst_src, v) if thorough else float("nan")
@@ -180,6 +181,12 @@ class CheckLog:
         self.counts: dict[str, int] = {}
         self.episodes: list[Episode] = []
         self._open: dict[str, Episode] = {}
+        self.intervals: list[tuple] = []
+
+    def interval(self, first: int, t_first: float, last: int, t_last: float, T_camera: np.ndarray,
+                 lidar: LidarMotion) -> None:
+        """One checked interval: the camera's motion and the lidar's between two frames (their times)."""
+        self.intervals.append((first, t_first, last, t_last, np.array(T_camera, float), lidar))
 
     def source(self, source: str) -> None:
         self.by_source[source] += 1
@@ -210,6 +217,7 @@ class CheckLog:
         self._log.warning("%s", ep.describe())
 
     def summary(self) -> dict:
+        """frames_by_source, findings (frames per kind) and episodes, as timings.json holds them."""
         return {"frames_by_source": dict(self.by_source), "findings": dict(self.counts),
                 "episodes": [{"kind": e.kind, "frames": [e.first, e.last], "detail": e.detail}
                              for e in self.episodes + list(self._open.values())]}

@@ -1,0 +1,106 @@
+"""The camera-lidar time offset, estimated from the data: when the lidar's scans are taken offset_s after the images
+(a driver's clock, a pairing one frame off), the lidar's rotation between two scans is the camera's rotation
+between the two images' times plus offset_s.
+
+At constant velocity an offset cannot be told from a shift of the extrinsic along the road, and nothing shows it;
+where the turn rate changes (a turn's start and end), the lidar's rotation over an interval runs ahead of (or
+behind) the camera's by the change of rate times the offset. So the estimate compares, for every interval the
+tracker checked against the lidar (plvo.tracking.lidar_check), the lidar's rotation with the camera's over the
+same interval shifted by a trial offset, the camera's orientation interpolated between its frames (rotations only:
+the images alone fix them, the lidar's depth does not enter), and takes the offset of least squared angle:
+a grid of 5 ms over +-max_s, refined by a parabola. Its standard deviation follows from the fit's curvature and
+its residual; the estimate is observable when that is below `crosscheck.offset_sigma_s` (a straight road at
+steady speed never is: the estimate is then withheld, not guessed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+_GRID_S = 0.005
+_MIN_INTERVALS = 8
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """offset_s: the lidar's scans are taken this long after the images (s; negative: before); sigma_s its
+    standard deviation; n_intervals: intervals used; observable: sigma_s below the config's bound."""
+
+    offset_s: float
+    sigma_s: float
+    n_intervals: int
+    observable: bool
+
+    def as_dict(self) -> dict:
+        return {"offset_s": round(self.offset_s, 4), "sigma_s": round(self.sigma_s, 4),
+                "n_intervals": self.n_intervals, "observable": self.observable}
+
+
+class TimeOffsetEstimator:
+    """Frames' orientations and the lidar's checked intervals in, an OffsetEstimate out."""
+
+    def __init__(self, max_s: float, sigma_bound_s: float):
+        self.max_s = max_s
+        self.sigma_bound_s = sigma_bound_s
+        self._times: list[float] = []
+        self._rots: list[np.ndarray] = []
+        self._intervals: list[tuple[float, float, np.ndarray]] = []
+
+    def frame(self, time_s: float, R_world_cam: np.ndarray) -> None:
+        if self._times and not time_s > self._times[-1]:
+            return  # the interpolation needs increasing times; a repeated time adds nothing
+        self._times.append(float(time_s))
+        self._rots.append(np.array(R_world_cam, float))
+
+    def interval(self, t_first: float, t_last: float, R_lidar: np.ndarray) -> None:
+        """The lidar's rotation (camera frame, first -> last) between the scans paired with two frames' times."""
+        if t_last > t_first:
+            self._intervals.append((float(t_first), float(t_last), np.array(R_lidar, float)))
+
+    @property
+    def n_intervals(self) -> int:
+        return len(self._intervals)
+
+    def estimate(self) -> OffsetEstimate | None:
+        """The least-squares offset, or None while too few intervals lie inside the tracked span +- max_s."""
+        if len(self._times) < 3:
+            return None
+        t0, t1 = self._times[0] + self.max_s, self._times[-1] - self.max_s
+        use = [iv for iv in self._intervals if iv[0] >= t0 and iv[1] <= t1]
+        if len(use) < _MIN_INTERVALS:
+            return None
+        times = np.asarray(self._times)
+        slerp = Slerp(times, Rotation.from_matrix(np.asarray(self._rots)))
+        lo, hi = times[0], times[-1]
+        ta = np.array([iv[0] for iv in use])
+        tb = np.array([iv[1] for iv in use])
+        R_lidar_inv = Rotation.from_matrix(np.asarray([iv[2] for iv in use])).inv()
+
+        def residuals(offset: float) -> np.ndarray:
+            camera = slerp(np.clip(ta + offset, lo, hi)).inv() * slerp(np.clip(tb + offset, lo, hi))
+            return (R_lidar_inv * camera).as_rotvec()  # (n,3) rad
+
+        grid = np.linspace(-self.max_s, self.max_s, 2 * int(round(self.max_s / _GRID_S)) + 1)
+        # Intervals whose residual is far larger than the rest's at every offset (a wrong registration, a camera
+        # step gone wrong) are left out: the worst tenth, judged at the offset that fits the rest best
+        per = np.array([np.einsum("ij,ij->i", r, r) for r in (residuals(d) for d in grid)])  # (grid, n)
+        best = per[int(np.argmin(per.sum(axis=1)))]
+        keep = best <= np.quantile(best, 0.9)
+        if keep.sum() < _MIN_INTERVALS:
+            return None
+        ta, tb, R_lidar_inv = ta[keep], tb[keep], R_lidar_inv[np.flatnonzero(keep)]
+        cost = np.array([float((residuals(d) ** 2).sum()) for d in grid])
+        step = float(grid[1] - grid[0])
+        k = int(np.clip(np.argmin(cost), 1, len(grid) - 2))
+        c_m, c_0, c_p = cost[k - 1], cost[k], cost[k + 1]
+        curvature = (c_m - 2 * c_0 + c_p) / step ** 2  # d2cost/doffset2 = 2 sum(dr/doffset)^2
+        shift = 0.5 * (c_m - c_p) / (c_m - 2 * c_0 + c_p) * step if curvature > 0 else 0.0
+        offset = float(grid[k] + np.clip(shift, -step, step))
+        n = len(use)
+        residual = float((residuals(offset) ** 2).sum())
+        noise = residual / max(1, 3 * n - 1)  # per rotation-vector component
+        sigma = float(np.sqrt(2 * noise / curvature)) if curvature > 0 else float("inf")
+        return OffsetEstimate(offset, sigma, n, bool(sigma < self.sigma_bound_s))
