@@ -9,11 +9,11 @@ import logging
 
 import numpy as np
 import pytest
-from kitti_variants import variant
 
 from plvo.config import CrossCheckConfig, SystemConfig
 from plvo.data.registry import open_dataset
 from plvo.eval.kiss import run_kiss
+from plvo.eval.kitti_variants import variant
 from plvo.run import run_dataset
 from plvo.tracking.lidar_check import LidarOdometer
 

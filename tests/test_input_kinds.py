@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 from faults_table import fault, one_error_line
-from kitti_variants import variant
 
 from plvo.data.pointcloud import read_scan_file
 from plvo.data.registry import open_dataset
 from plvo.errors import DatasetError
+from plvo.eval.kitti_variants import variant
 
 SEQ = "04"
 

@@ -9,11 +9,12 @@ import logging
 
 import numpy as np
 import pytest
-from kitti_variants import variant
+from faults_table import fault
 from scipy.spatial.transform import Rotation
 
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset
+from plvo.eval.kitti_variants import variant
 from plvo.run import run_dataset
 from plvo.tracking.time_offset import TimeOffsetEstimator
 
@@ -70,12 +71,13 @@ def _max_error(ds, poses) -> float:
 
 
 def test_late_scans_are_named_and_corrected_when_stated(late_scans, caplog):
+    row = fault("time-offset")
     ds = open_dataset(late_scans, "00")
     with caplog.at_level(logging.WARNING, logger="plvo.tracking.frontend"):
         out = run_dataset(ds, SystemConfig())
     found = out.trust["time_offset"]["found"]
     assert found is not None and abs(found["offset_s"] - 0.1) < 0.02, out.trust["time_offset"]
-    named = [r.getMessage() for r in caplog.records if "camera-lidar time offset" in r.getMessage()]
+    named = [r.getMessage() for r in caplog.records if row.message in r.getMessage()]
     assert len(named) == 1 and "--time-offset 0.0" in named[0], named
     assert _max_error(ds, out.poses) > 0.5  # what the offset costs unstated (1.5 m over the first 80 frames)
     cfg = SystemConfig()

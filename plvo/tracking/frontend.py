@@ -238,7 +238,7 @@ class Frontend:
         if lidar_ok and mean_abs_difference(frame.image, last.image) < cc.frozen_image_grey:
             still = self._lidar_motion(last, frame, [velocity, np.eye(4)], timings)
             if still.usable and still.step_m > cc.still_m:
-                return self._hold(frame, feats, prev, base, still, timings)
+                return self._hold(frame, feats, base, still, timings)
         t = time.perf_counter()
         pm, lm = self._match(prev, feats, T_pred)
         corr = self._correspondences(prev, feats, pm, lm)
@@ -276,11 +276,11 @@ class Frontend:
                 found = self._seeded(prev, feats, base, lidar, timings)
                 if found is None:
                     return self._overrule(frame, feats, base, base, lidar, "tracking lost", timings, corr)
+                self.checks.note(frame.index, "camera re-tracked from the lidar's motion",
+                                 f"tracking was lost ({sol.message}); matched again from the lidar's motion")
                 sol, corr, T, p_in, l_in = found
                 pm, lm = _no_matches(), _no_matches()  # the first matching's pairs are not the solution's
                 source = CAMERA_SEEDED
-                self.checks.note(frame.index, "camera re-tracked from the lidar's motion",
-                                 f"tracking was lost ({sol.message}); matched again from the lidar's motion")
             else:
                 msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
                        f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
@@ -361,7 +361,6 @@ class Frontend:
             T_src = self.map.keyframe_pose(self._last_kf_id)
             src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
         lidar = self._lidar_motion(src, frame, guesses, timings, thorough=doubted)
-        self.checks.interval(src.index, src.time, frame.index, frame.time, se3.inv(T_src) @ T, lidar)
         if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
             self._estimate_offset(frame, src.time, lidar)
             return None
@@ -386,15 +385,15 @@ class Frontend:
         return lidar, found
 
     def _estimate_offset(self, frame: Frame, t_src: float, lidar: LidarMotion) -> None:
-        """Add the checked interval to the time offset's estimate; every 5th, estimate; the first time the offset
-        is observable and over crosscheck.offset_warn_s from the stated one, name it and what to state.
+        """Add a checked interval whose frames the camera kept to the time offset's estimate (where the lidar's
+        motion was taken, the two agree at any offset and would pull the estimate to none); every 5th, estimate;
+        the first time the offset is observable and over crosscheck.offset_warn_s from the stated one, name it and
+        what to state.
 
         It is not corrected mid-run: the landmarks and the back end's local map made so far hold the offset, and
         moving the scans from a frame on mixed the two (the town with its scans a frame late, 0.1 s: largest error
         1.47 m uncorrected, 1.00 m corrected from the frame it was found at, 0.20 m stated from the start against
         0.17 m without the offset)."""
-        # Only intervals whose frames the camera tracked: where the lidar's motion was taken, the two agree at any
-        # offset and would pull the estimate to none
         if self.offset is None:
             return
         cc = self.cfg.crosscheck
@@ -439,7 +438,7 @@ class Frontend:
         res = self._initialise(frame, feats, T, OVERRULED, kfp.OVERRULED, msg, timings, corr)
         return dataclasses.replace(res, source=LIDAR, lidar=lidar)
 
-    def _hold(self, frame, feats, prev, base, lidar: LidarMotion, timings) -> FrontendResult:
+    def _hold(self, frame, feats, base, lidar: LidarMotion, timings) -> FrontendResult:
         """A repeated image while the lidar moves (a frozen camera): the lidar's pose, no keyframe, and the next
         image tracked against the last real one, predicted from here."""
         T = base @ lidar.T_camprev_camcur
@@ -672,8 +671,8 @@ class Frontend:
         time, the tracker's last motion (this frame's, or after a loss the prediction's) over the time since the
         previous frame (None at the first frame); the motion after it is the next frame's (`sweep_after`). None when
         the scan is not deskewed.
-        A camera-lidar time offset (stated, or found: `_estimate_offset`) adds to every return's time: the scan,
-        taken that long after the image, is moved to the image's instant, for the depth priors and the workers."""
+        A stated camera-lidar time offset (crosscheck.time_offset_s) adds to every return's time: the scan, taken
+        that long after the image, is moved to the image's instant, for the depth priors and the workers."""
         deskewed = needs_deskew(frame, self.cfg.registration.deskew)
         if not deskewed and not self._offset_s:
             return None

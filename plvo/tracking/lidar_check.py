@@ -181,12 +181,6 @@ class CheckLog:
         self.counts: dict[str, int] = {}
         self.episodes: list[Episode] = []
         self._open: dict[str, Episode] = {}
-        self.intervals: list[tuple] = []
-
-    def interval(self, first: int, t_first: float, last: int, t_last: float, T_camera: np.ndarray,
-                 lidar: LidarMotion) -> None:
-        """One checked interval: the camera's motion and the lidar's between two frames (their times)."""
-        self.intervals.append((first, t_first, last, t_last, np.array(T_camera, float), lidar))
 
     def source(self, source: str) -> None:
         self.by_source[source] += 1

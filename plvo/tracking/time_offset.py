@@ -15,6 +15,7 @@ steady speed never is: the estimate is then withheld, not guessed).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 _GRID_S = 0.005
 _MIN_INTERVALS = 8
+# The newest intervals kept: an offset is constant, and a bounded window bounds an estimate's cost over a long run
+# (~600 frames at a keyframe every 3)
+_WINDOW = 200
 
 
 @dataclass(frozen=True)
@@ -45,9 +49,10 @@ class TimeOffsetEstimator:
     def __init__(self, max_s: float, sigma_bound_s: float):
         self.max_s = max_s
         self.sigma_bound_s = sigma_bound_s
-        self._times: list[float] = []
-        self._rots: list[np.ndarray] = []
-        self._intervals: list[tuple[float, float, np.ndarray]] = []
+        self._times: deque[float] = deque()
+        self._rots: deque[np.ndarray] = deque()
+        self._intervals: deque[tuple[float, float, np.ndarray]] = deque(maxlen=_WINDOW)
+        self._n = 0
 
     def frame(self, time_s: float, R_world_cam: np.ndarray) -> None:
         if self._times and not time_s > self._times[-1]:
@@ -57,12 +62,19 @@ class TimeOffsetEstimator:
 
     def interval(self, t_first: float, t_last: float, R_lidar: np.ndarray) -> None:
         """The lidar's rotation (camera frame, first -> last) between the scans paired with two frames' times."""
-        if t_last > t_first:
-            self._intervals.append((float(t_first), float(t_last), np.array(R_lidar, float)))
+        if not t_last > t_first:
+            return
+        self._intervals.append((float(t_first), float(t_last), np.array(R_lidar, float)))
+        self._n += 1
+        oldest = self._intervals[0][0] - self.max_s - 1.0
+        while len(self._times) > 2 and self._times[1] < oldest:  # frames no interval in the window reaches
+            self._times.popleft()
+            self._rots.popleft()
 
     @property
     def n_intervals(self) -> int:
-        return len(self._intervals)
+        """Intervals added so far (the estimate uses the newest _WINDOW of them)."""
+        return self._n
 
     def estimate(self) -> OffsetEstimate | None:
         """The least-squares offset, or None while too few intervals lie inside the tracked span +- max_s."""
