@@ -223,6 +223,10 @@ def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict
             "per_frame_ms": {k: [round(1e3 * v, 3) for v in vals] for k, vals in system.timings.items()}}
 
 
+DEGRADED = "degraded"  # complete, but some frames' poses are the motion model's guess (docs/faults.md)
+DEGRADED_EXIT = 3
+
+
 def trust_line(system) -> str:
     """The last line's account of where the poses came from, when not all from the camera: ': 48 by the camera,
     3 by the lidar alone (frozen image 3)'."""
@@ -361,10 +365,11 @@ def run(args: argparse.Namespace) -> int:
         status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog,
                                         args.format)
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
-        if error is None and status == "complete":
+        if error is None and status in ("complete", DEGRADED):
             tracked, share = tracked_summary(system.frames_done, system.n_lost)
-            print(f"complete: {system.frames_done} frames, {tracked} tracked ({share:.0%}){trust_line(system)}",
+            print(f"{status}: {system.frames_done} frames, {tracked} tracked ({share:.0%}){trust_line(system)}",
                   file=sys.stderr)
+            exit_code = DEGRADED_EXIT if status == DEGRADED else exit_code
             if viewer is not None and not held.seen:
                 held.what = None
                 print(f"serving the run: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
@@ -389,7 +394,11 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
             reason = (f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), "
                       f"below {MIN_TRACKED_SHARE:.0%}")
             error = RunFailed(f"{reason}: results marked failed, no poses.txt")
-    if status == "complete" and error is None:
+        elif system.n_lost:
+            # the trajectory is not whole: some frames hold the motion model's guess, neither sensor's
+            status, reason = DEGRADED, (f"{system.n_lost} of {system.frames_done} frames lost: neither the camera nor "
+                                        "the lidar placed them, their poses are the motion model's guess")
+    if status in ("complete", DEGRADED) and error is None:
         try:
             _write_poses(outs.out, system, dataset, fmt)
         except PlvoError as exc:

@@ -43,6 +43,7 @@ __all__ = ["LAYERS", "SceneStore", "ViewLimits", "ViserRecorder", "ViserViewer",
 log = logging.getLogger(__name__)
 
 GT_COLOR = (60, 60, 60)  # dark grey: apart from the green estimate and the orange keyframes
+BY_LIDAR_COLOR = (230, 30, 30)  # red: frames whose pose came from the lidar or was matched from its motion
 # layer name -> (GUI label, shown by default)
 LAYERS = {
     "scan": ("scan", True),
@@ -52,6 +53,7 @@ LAYERS = {
     "loops": ("loops", True),
     "gt": ("ground truth", True),
     "est": ("estimate", True),
+    "by_lidar": ("poses by the lidar", True),
     "camera": ("camera", True),
 }
 
@@ -277,6 +279,9 @@ class ViserViewer:
         self._segments("loops", "/loops", loops, loops, on["loops"], (255, 0, 255), 3.0)
         self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 2.0)
         self._polyline("est", "/trajectory/est", s.latest("est", f), on["est"], GREEN)
+        by = s.latest("by_lidar", f)
+        self._cloud("by_lidar", "/trajectory/by_lidar", by, None if by is None else np.asarray(by, np.float32),
+                    BY_LIDAR_COLOR, on["by_lidar"], 0.5)
         self._camera(f, on["camera"])
 
     def _segments(self, key: str, name: str, data: Any, segs: np.ndarray | None, visible: bool, color,
@@ -366,6 +371,7 @@ class ViserRecorder:
         self._frame: Frame | None = None
         self._pose: np.ndarray | None = None
         self._trail = EstimateTrail()
+        self._by_lidar: list[int] = []  # rows of the trail whose pose came from the lidar (or its motion)
         self._loops: list[np.ndarray] = []
         self._last_refresh = 0.0
         self.keep = keep
@@ -411,6 +417,9 @@ class ViserRecorder:
             self.store.put("log", frame_index, result.message or "tracking lost")
         elif source != "camera":
             self.store.put("log", frame_index, f"pose by the {source}: {result.message}")
+            self._by_lidar.append(len(self._trail.frames) - 1)
+            self.store.put("by_lidar", frame_index, TrailView(self._trail, len(self._trail.frames),
+                                                              rows=tuple(self._by_lidar)))
 
     def _map(self, frame_index: int, result: MapResult) -> None:
         self._put_heavy("map_points", frame_index, np.asarray(result.points, np.float32))
@@ -481,15 +490,16 @@ class TrailView:
     """The first n positions of an EstimateTrail (frames, or keyframes by id) as the trail stands when drawn: a
     few bytes in the store instead of a copy of the trajectory."""
 
-    def __init__(self, trail: EstimateTrail, n: int, keyframes: bool = False):
-        self.trail, self.n, self.keyframes = trail, n, keyframes
+    def __init__(self, trail: EstimateTrail, n: int, keyframes: bool = False, rows: tuple[int, ...] | None = None):
+        self.trail, self.n, self.keyframes, self.rows = trail, n, keyframes, rows
 
     def __len__(self) -> int:
-        return self.n
+        return self.n if self.rows is None else len(self.rows)
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         p = self.trail.cached_keyframe_positions() if self.keyframes else self.trail.cached_positions()
-        return np.asarray(p[:self.n], dtype or np.float32)
+        p = p[:self.n] if self.rows is None else p[list(self.rows)]  # rows: some frames only (poses by the lidar)
+        return np.asarray(p, dtype or np.float32)
 
 
 def serve_until_interrupted(viewer: ViserViewer, what: str) -> None:

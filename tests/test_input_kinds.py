@@ -79,3 +79,29 @@ def test_frozen_camera_run_says_so(kitti_root, tmp_path, capsys, caplog):
     timings = json.loads((tmp_path / "out" / "timings.json").read_text())
     assert timings["frames_by_source"]["lidar"] == 3
     assert [(e["kind"], e["frames"]) for e in timings["episodes"]] == [("frozen image", [10, 12])]
+
+
+def test_run_with_lost_frames_is_degraded(kitti_root, tmp_path, capsys):
+    """Frames 20-21 black and their scans a handful of returns: neither sensor can place them. The run completes
+    with their poses the motion model's guess, and says so: status degraded, exit 3, the frames named."""
+    row = fault("degraded")
+    root = variant(kitti_root, SEQ, tmp_path / "kitti", 30)
+    seq = root / "sequences" / SEQ
+    for k in (20, 21):
+        image = seq / "image_0" / f"{k:06d}.png"
+        shape = cv2.imread(str(image), cv2.IMREAD_UNCHANGED).shape
+        image.unlink()
+        cv2.imwrite(str(image), np.zeros(shape, np.uint8))
+        scan = seq / "velodyne" / f"{k:06d}.bin"
+        scan.unlink()
+        np.array([[5.0, 0, -1.7, 0], [5.0, 1, -1.7, 0], [6.0, 0, -1.7, 0]], np.float32).tofile(scan)
+    status, err = _viz(["--root", str(root), "--seq", SEQ, "--no-serve", "--out", str(tmp_path / "out"),
+                        "--rrd", str(tmp_path / "run.rrd")], capsys)
+    assert status == row.exit, err[-3000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(row.message) and "lost (motion model)" in last, last
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    assert timings["status"] == "degraded" and timings["frames_by_source"]["motion model"] >= 2
+    lost = [e for e in timings["episodes"] if e["kind"] == "tracking lost"]
+    assert lost and lost[0]["frames"][0] == 20, timings["episodes"]
+    assert (tmp_path / "out" / "poses.txt").exists()  # whole in length: every frame has a pose, some guessed

@@ -75,18 +75,29 @@ def test_stopped_car_does_not_drift(synth_sequence_factory):
     assert frac < 0.02 and rot < 0.3, (frac, rot)
 
 
-def test_blank_frame_loses_tracking_then_recovers(synth_seq, caplog):
+@pytest.mark.parametrize("check", [True, False])
+def test_blank_frame_loses_tracking_then_recovers(synth_seq, caplog, check):
+    """A black image: with the lidar check (the default) the lidar gives the frame's pose; without it, the motion
+    model's guess. Either way landmarks are made anew from the lidar depth and tracking goes on."""
     ds = KittiOdometry(synth_seq, "00")
     lost_at = 10
     blank = np.zeros_like(ds[lost_at].image)
+    cfg = CFG if check else dataclasses.replace(CFG, crosscheck=dataclasses.replace(CFG.crosscheck, enabled=False))
     with caplog.at_level(logging.INFO, logger="plvo.tracking.frontend"):
-        fe, res, est = _track(ds, image_override={lost_at: blank})
+        fe, res, est = _track(ds, cfg, image_override={lost_at: blank})
     lost = res[lost_at]
-    assert not lost.ok and lost.status == "reinitialised" and lost.is_keyframe
-    assert "tracking lost" in lost.message and "re-initialised from the current lidar depth" in lost.message
-    assert any(r.levelno == logging.WARNING and f"frame {lost_at}: tracking lost" in r.getMessage()
-               for r in caplog.records)
-    # The frames before are untouched; the lost frame took the constant-velocity prediction (10 m/s, 1 m a frame).
+    assert lost.is_keyframe and "re-initialised from the" in lost.message
+    if check:
+        assert lost.ok and lost.status == "overruled" and lost.source == "lidar", lost.message
+        expected = f"frame {lost_at}: camera overruled by the lidar; tracking lost"
+    else:
+        assert not lost.ok and lost.status == "reinitialised" and lost.source == "motion model"
+        assert "tracking lost" in lost.message and "re-initialised from the current lidar depth" in lost.message
+        expected = f"frame {lost_at}: tracking lost"
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and warned[0].startswith(expected), warned
+    # The frames before are untouched; the lost frame took the lidar's motion or the constant-velocity prediction
+    # (10 m/s, 1 m a frame)
     assert all(r.ok for r in res[1:lost_at])
     gt = ds.gt_T_world_cam
     assert np.linalg.norm(est[lost_at, :3, 3] - gt[lost_at, :3, 3]) < 0.1

@@ -284,7 +284,10 @@ class Frontend:
             else:
                 msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
                        f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
-                log.warning(msg)
+                log.info(msg)  # one warning an episode names the frames (CheckLog)
+                self.checks.note(frame.index, "tracking lost", f"{sol.message}; the lidar "
+                                 f"{'could not judge' if lidar is not None else 'was not asked'}: the motion "
+                                 "model's guess, landmarks from the current lidar depth")
                 res = self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
                 return dataclasses.replace(res, source=PREDICTION, lidar=lidar)
         if source == CAMERA:
