@@ -39,7 +39,7 @@ from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
 from plvo.lidar.local_map import LocalMap
-from plvo.lidar.registration import PreparedScan, RegistrationResult, align, prepare
+from plvo.lidar.registration import PreparedScan, RegistrationResult, SparseScan, align, prepare
 from plvo.results import EDGE_ODOMETRY
 from plvo.tracking.corrections import BACKEND, GraphEdge, MapCorrection, WindowData
 from plvo.types import Calibration
@@ -129,8 +129,13 @@ class BackendCore:
         self._frame_of = {k: f for k, f in self._frame_of.items() if k in in_window}
         self._frame_of[int(job.kf_id)] = int(job.frame_index)
         known = self._known_poses(w)
+        scan = None
         if self.cfg.backend.registration and job.scan is not None:
-            scan = prepare(job.scan, self.cfg.registration, f"frame {job.frame_index} scan")
+            try:
+                scan = prepare(job.scan, self.cfg.registration, f"frame {job.frame_index} scan")
+            except SparseScan as exc:  # this keyframe goes without a lidar factor; the next ones register again
+                log.warning("back end: keyframe %d: %s; not registered", job.kf_id, exc)
+        if scan is not None:
             if self._local_map is not None:
                 reg, edge = self._register_to_map(w, job.kf_id, scan, known)
                 seconds["registration"] = time.perf_counter() - t

@@ -83,6 +83,10 @@ class RegistrationResult:
     time_s: float
 
 
+class SparseScan(PlvoError):
+    """A scan with too few returns in range to register (a lidar that dropped out, a frame of the wrong data)."""
+
+
 def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan",
                voxel_m: float | None = None) -> o3d.geometry.PointCloud:
     """(N,3|4) lidar-frame points -> range-cropped (min_range_m..max_range_m), voxel-downsampled point cloud."""
@@ -94,7 +98,7 @@ def preprocess(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan",
     keep = np.flatnonzero((r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2))
     xyz = pts.take(keep, axis=0)[:, :3].astype(np.float64)  # whole rows first: faster than a strided mask
     if len(xyz) < 100:
-        raise PlvoError(f"registration: {name} has {len(xyz)} points in range, need at least 100")
+        raise SparseScan(f"registration: {name} has {len(xyz)} points in range, need at least 100")
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     voxel = cfg.voxel_m if voxel_m is None else voxel_m
     return pc.voxel_down_sample(voxel) if voxel > 0 else pc
