@@ -118,7 +118,8 @@ class LidarOdometer:
         T_cam = self._T_cam_velo @ se3.inv(T_dst_src) @ self._T_velo_cam
         # the conditioning only matters where the lidar is to overrule the camera: computed for thorough checks
         cond = _conditioning(a, b, T_dst_src, v) if thorough else float("nan")
-        usable = best.fitness >= self.cfg.min_fitness and not cond < self.cfg.degenerate_ratio
+        usable = best.fitness >= self.cfg.min_fitness and not cond < self.cfg.degenerate_ratio \
+            and bool(np.isfinite(T_cam).all())
         return LidarMotion(T_cam, float(best.fitness), float(best.inlier_rmse), cond, bool(usable),
                            time.perf_counter() - t0)
 
