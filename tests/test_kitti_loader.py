@@ -259,8 +259,8 @@ def test_nan_in_scan_names_frame(tmp_path):
 
 @pytest.mark.parametrize("kind", ["gray8", "gray16", "rgb", "palette", "gray1"])
 def test_every_png_kind_reads_as_pil_converts_it(tmp_path, kind):
-    """8-bit greyscale PNGs take OpenCV's decoder (faster); every other kind PIL's conversion, as before: the
-    grey image the pipeline gets is PIL's "L" image of the file either way."""
+    """8-bit greyscale PNGs take OpenCV's decoder (faster); every other kind but 16-bit grey PIL's conversion: the
+    grey image the pipeline gets is PIL's "L" image of the file. 16-bit grey is scaled to its high byte."""
     from PIL import Image
 
     seq = make_odometry(tmp_path)
@@ -277,6 +277,8 @@ def test_every_png_kind_reads_as_pil_converts_it(tmp_path, kind):
     else:
         Image.fromarray(rng.integers(0, 2, (H, W), np.uint8) * 255).convert("1").save(path)
     expected = np.asarray(Image.open(path).convert("L"))
+    if kind == "gray16":  # scaled on purpose, the high byte (as a ROS mono16 image), not PIL's clip to white
+        expected = (cv2.imread(str(path), cv2.IMREAD_UNCHANGED) >> 8).astype(np.uint8)
     assert (kitti_module._gray8_png(path) is not None) == (kind == "gray8")
     got = KittiOdometry(tmp_path, "07")[2].image
     assert got.dtype == np.uint8 and got.shape == (H, W)

@@ -97,30 +97,35 @@ class TimeOffsetEstimator:
         lo, hi = times[0], times[-1]
         ta = np.array([iv[0] for iv in use])
         tb = np.array([iv[1] for iv in use])
-        R_lidar_inv = Rotation.from_matrix(np.asarray([iv[2] for iv in use])).inv()
+        lidar_inv = np.transpose(np.asarray([iv[2] for iv in use]), (0, 2, 1))  # (n,3,3) inverse rotations
 
-        def residuals(offset: float) -> np.ndarray:
-            camera = slerp(np.clip(ta + offset, lo, hi)).inv() * slerp(np.clip(tb + offset, lo, hi))
-            return (R_lidar_inv * camera).as_rotvec()  # (n,3) rad
+        def residuals(offsets: np.ndarray) -> np.ndarray:
+            """(G,) trial offsets -> (G,n,3) rotation vectors (rad) of the lidar's rotations against the camera's,
+            every offset and interval in one call (a loop over the grid cost 0.1 s at 200 intervals)."""
+            a = np.clip(ta[None, :] + offsets[:, None], lo, hi).ravel()
+            b = np.clip(tb[None, :] + offsets[:, None], lo, hi).ravel()
+            camera = slerp(a).inv() * slerp(b)
+            lidar = Rotation.from_matrix(np.tile(lidar_inv, (len(offsets), 1, 1)))
+            return (lidar * camera).as_rotvec().reshape(len(offsets), len(ta), 3)
 
         grid = np.linspace(-self.max_s, self.max_s, 2 * int(round(self.max_s / _GRID_S)) + 1)
         # Intervals whose residual is far larger than the rest's at every offset (a wrong registration, a camera
         # step gone wrong) are left out: the worst tenth, judged at the offset that fits the rest best
-        per = np.array([np.einsum("ij,ij->i", r, r) for r in (residuals(d) for d in grid)])  # (grid, n)
+        per = (residuals(grid) ** 2).sum(axis=2)  # (grid, n)
         best = per[int(np.argmin(per.sum(axis=1)))]
         keep = best <= np.quantile(best, 0.9)
         if keep.sum() < _MIN_INTERVALS:
             return None
-        ta, tb, R_lidar_inv = ta[keep], tb[keep], R_lidar_inv[np.flatnonzero(keep)]
-        cost = np.array([float((residuals(d) ** 2).sum()) for d in grid])
+        ta, tb, lidar_inv = ta[keep], tb[keep], lidar_inv[keep]
+        cost = per[:, keep].sum(axis=1)
         step = float(grid[1] - grid[0])
         k = int(np.clip(np.argmin(cost), 1, len(grid) - 2))
         c_m, c_0, c_p = cost[k - 1], cost[k], cost[k + 1]
         curvature = (c_m - 2 * c_0 + c_p) / step ** 2  # d2cost/doffset2 = 2 sum(dr/doffset)^2
         shift = 0.5 * (c_m - c_p) / (c_m - 2 * c_0 + c_p) * step if curvature > 0 else 0.0
         offset = float(grid[k] + np.clip(shift, -step, step))
-        n = len(use)
-        residual = float((residuals(offset) ** 2).sum())
+        n = len(ta)
+        residual = float((residuals(np.array([offset])) ** 2).sum())
         noise = residual / max(1, 3 * n - 1)  # per rotation-vector component
         sigma = float(np.sqrt(2 * noise / curvature)) if curvature > 0 else float("inf")
         spread = _rate_spread(times, slerp)
