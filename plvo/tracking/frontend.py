@@ -102,7 +102,6 @@ class FrontendResult(TrackingResult):
     keyframe: KeyframeInfo | None = None
     timings: dict[str, float] = field(default_factory=dict)
     source: str = CAMERA  # where the pose came from (plvo.tracking.lidar_check.SOURCES)
-    lidar: LidarMotion | None = None  # the lidar's registration of the interval, where the tracker asked for it
 
     @property
     def n_point_inliers(self) -> int:
@@ -174,7 +173,6 @@ class Frontend:
         self._held: np.ndarray | None = None  # pose of the previous frame when the lidar held it (a repeated image)
         self._motion_known = False  # a step has been tracked: the motion model predicts something
         self._prev_dt: float | None = None  # the last interval between frames (s)
-        self._asked: LidarMotion | None = None  # the lidar's last answer
         cc = config.crosscheck
         self.offset = (TimeOffsetEstimator(cc.offset_max_s, cc.offset_sigma_s)
                        if self._lidar is not None and cc.estimate_time_offset else None)
@@ -289,7 +287,7 @@ class Frontend:
                                  f"{'could not judge' if lidar is not None else 'was not asked'}: the motion "
                                  "model's guess, landmarks from the current lidar depth")
                 res = self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
-                return dataclasses.replace(res, source=PREDICTION, lidar=lidar)
+                return dataclasses.replace(res, source=PREDICTION)
         if source == CAMERA:
             t = time.perf_counter()
             T, corr, p_in, l_in = self._search_landmarks(feats, sol.T_world_cam, corr, sol.point_inliers,
@@ -307,13 +305,11 @@ class Frontend:
                 if isinstance(found, FrontendResult):
                     return found
                 if found is not None:
-                    lidar, (sol, corr, T, p_in, l_in), source = found[0], found[1], CAMERA_SEEDED
+                    (sol, corr, T, p_in, l_in), source = found, CAMERA_SEEDED
                     pm, lm = _no_matches(), _no_matches()
                     why = ", ".join(doubts) or "at a keyframe"
                     self.checks.note(frame.index, "camera corrected by the lidar", f"the camera's motion disagreed "
                                      f"with the lidar's ({why}); matched again from the lidar's motion")
-                else:
-                    lidar = self._asked
         self._motion_known = True
         self._held = None
         assoc = FrameAssociation.empty(feats.n_points, feats.n_lines)
@@ -341,7 +337,7 @@ class Frontend:
         res = self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
                            corr, (p_in, l_in), n_new, keyframe, timings,
                            (sol.point_residuals[sol.point_inliers], sol.line_residuals[sol.line_inliers]))
-        return dataclasses.replace(res, source=source, lidar=lidar)
+        return dataclasses.replace(res, source=source)
 
     # ---- the camera checked against the lidar ---------------------------------------------------------------
     def _lidar_motion(self, src: Frame, dst: Frame, guesses: list[np.ndarray], timings: dict[str, float],
@@ -349,13 +345,13 @@ class Frontend:
         assert self._lidar is not None
         motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
         timings["crosscheck"] = timings.get("crosscheck", 0.0) + motion.time_s
-        self._asked = motion
         return motion
 
     def _check(self, frame, feats, prev, base, T, velocity, doubted: bool, timings):
         """The camera's pose T checked against the lidar: over the last frame's interval when the estimate is in
-        doubt, else (at a keyframe) since the newest keyframe. None: they agree (or the lidar cannot judge);
-        (lidar, the camera's solution matched again from the lidar's motion); or the lidar's own pose's result."""
+        doubt, else (at a keyframe) since the newest keyframe. None: they agree (or the lidar cannot judge, or only
+        the rotation disagrees); the camera's solution matched again from the lidar's motion (`_seeded`); or the
+        result with the lidar's own pose (`_overrule`)."""
         kf = self._last_kf_input
         if doubted or kf is None or self._last_kf_id < 0:
             assert self._last_input is not None
@@ -385,7 +381,7 @@ class Frontend:
                 return None
             return self._overrule(frame, feats, base, T_src, lidar, f"the camera's motion {dm:.2f} m / {ddeg:.1f} deg "
                                   f"from the lidar's since frame {src.index}", timings)
-        return lidar, found
+        return found
 
     def _estimate_offset(self, frame: Frame, t_src: float, lidar: LidarMotion) -> None:
         """Add a checked interval whose frames the camera kept to the time offset's estimate (where the lidar's
@@ -438,7 +434,7 @@ class Frontend:
         self._velocity = se3.inv(base) @ T  # base: the previous frame's pose
         self._held = None
         res = self._initialise(frame, feats, T, OVERRULED, kfp.OVERRULED, msg, timings, corr)
-        return dataclasses.replace(res, source=LIDAR, lidar=lidar)
+        return dataclasses.replace(res, source=LIDAR)
 
     def _hold(self, frame, feats, base, lidar: LidarMotion, timings) -> FrontendResult:
         """A repeated image while the lidar moves (a frozen camera): the lidar's pose, no keyframe, and the next
@@ -452,7 +448,7 @@ class Frontend:
         msg = f"frame {frame.index}: the image repeats the previous one while the lidar moves: pose from the lidar"
         corr = self._correspondences(state, feats, _no_matches(), _no_matches())
         res = self._result(frame, state, HELD, msg, "", 0, 0, corr, None, (0, 0), None, timings)
-        return dataclasses.replace(res, source=LIDAR, lidar=lidar)
+        return dataclasses.replace(res, source=LIDAR)
 
     # ---- matching and correspondences --------------------------------------------------------------------
     def _match(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray | None) -> tuple[Matches, Matches]:
