@@ -233,17 +233,17 @@ def trust_line(system) -> str:
     summary = system.trust_summary()
     by = summary.get("frames_by_source", {})
     if not by or by.get("camera", 0) == system.frames_done:
-        return offset_line(system)
+        return offset_line(summary)
     names = {"camera": "by the camera", "camera, seeded by the lidar": "by the camera from the lidar's motion",
              "lidar": "by the lidar alone", "motion model": "lost (motion model)"}
     parts = [f"{n} {names[k]}" for k, n in by.items() if n]
     findings = ", ".join(f"{k} {n}" for k, n in summary.get("findings", {}).items())
-    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "") + offset_line(system)
+    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "") + offset_line(summary)
 
 
-def offset_line(system) -> str:
+def offset_line(summary: dict) -> str:
     """A found camera-lidar time offset, as the run's last word on it (empty when none was found)."""
-    found = (system.trust_summary().get("time_offset") or {}).get("found")
+    found = (summary.get("time_offset") or {}).get("found")
     if not found:
         return ""
     return (f"\ncamera-lidar time offset: the scans are taken {found['offset_s']:.3f} s (+- {found['sigma_s']:.3f}) "
