@@ -30,6 +30,7 @@ No multiprocessing queue, lock or shared memory is used, so nothing depends on m
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -122,15 +123,41 @@ def _libraries_single_threaded() -> None:
         cv2.setNumThreads(1)
 
 
+# The terminal's signals, sent to every process of its foreground group: Ctrl-C, Ctrl-\ and a closed terminal's
+# SIGHUP. The parent stops its workers; a worker that obeyed them itself would end before the parent's clean-up.
+_PARENTS_SIGNALS = (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT)
+
+
+@contextlib.contextmanager
+def _terminal_signals_ignored_by_children():
+    """Within: the terminal's signals ignored, so that a spawned worker starts with them ignored (an ignored
+    disposition survives the spawn's exec, and Python keeps it): a Ctrl-C during a worker's imports (a second or
+    two) no longer prints a KeyboardInterrupt's traceback from each worker. The parent's own signals are blocked
+    meanwhile, not lost: they reach its handlers once these are back."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _PARENTS_SIGNALS)
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in _PARENTS_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            if handler is not None:
+                signal.signal(s, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+
 def _as_child(name: str) -> None:
     """A worker process ends with its parent (a killed run leaves no worker behind), leaves Ctrl-C to the parent,
     and is named after its core, so `ps`, `top` and a test can tell the workers apart."""
+    for s in _PARENTS_SIGNALS:  # as they were at the spawn (_terminal_signals_ignored_by_children), for good
+        signal.signal(s, signal.SIG_IGN)
     c = c_library()
     if c is None:
         return
     c.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     c.prctl(_PR_SET_NAME, f"plvo-{name.replace(' ', '')}"[:15].encode())
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _send(conn: Connection, obj: Any) -> None:
@@ -212,7 +239,8 @@ class _ProcessLink:
         level = logging.getLogger("plvo").getEffectiveLevel()
         self.proc = ctx.Process(target=_serve, name=f"plvo-{name}", daemon=True,
                                 args=(job_r, out_w, name, factory, args, level, niceness))
-        self.proc.start()
+        with _terminal_signals_ignored_by_children():
+            self.proc.start()
         job_r.close()  # the worker's ends: with them closed here, the worker's death closes the pipes
         out_w.close()
         self._jobs, self._outputs = job_w, out_r

@@ -28,7 +28,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from plvo.errors import PlvoError  # noqa: E402
 from plvo.heap import keep_freed_memory  # noqa: E402
 from plvo_app import cmd_viz  # noqa: E402
-from plvo_app.guards import Terminated, exit_status_of, sigterm_as_interrupt  # noqa: E402
+from plvo_app.guards import Terminated, exit_status_of, outlive_readers, sigterm_as_interrupt  # noqa: E402
 
 # The tracking process reads, decodes and ships a frame's arrays every frame: keep freed memory for the next one
 # (plvo.heap; the worker processes do the same).
@@ -48,6 +48,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def _setup_logging(verbose: bool) -> None:
+    outlive_readers()  # first: the log handler and the progress bars take sys.stderr as they are made
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
@@ -63,8 +64,9 @@ def _warning_line(message, category, filename, lineno, file=None, line=None) -> 
 
 
 def _guarded(func, args) -> int:
-    """Run a subcommand: a PlvoError is one line and its exit status; Ctrl-C 130, SIGTERM 143; any other exception
-    (a bug) one line too, its traceback in a log file named on that line, exit 1."""
+    """Run a subcommand: a PlvoError is one line and its exit status; Ctrl-C 130, SIGTERM 143 (SIGHUP 129, SIGQUIT
+    131: plvo_app.guards); any other exception (a bug) one line too, its traceback in a log file named on that line,
+    exit 1."""
     with sigterm_as_interrupt():
         try:
             return int(func(args) or 0)
@@ -72,7 +74,7 @@ def _guarded(func, args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return exc.exit_status
         except KeyboardInterrupt as exc:
-            print("terminated" if isinstance(exc, Terminated) else "interrupted", file=sys.stderr)
+            print(f"terminated ({exc.name})" if isinstance(exc, Terminated) else "interrupted", file=sys.stderr)
             return exit_status_of(exc)
         except Exception as exc:  # noqa: BLE001 - the last resort
             where = _write_traceback()

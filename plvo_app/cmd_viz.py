@@ -5,9 +5,10 @@ $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recor
 results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
 timestamps under --format tum; written only when the run completed), config.toml (the resolved config) and
 timings.json. --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
-Ctrl-C or SIGTERM stops the run, closes the recording (readable, stamped "interrupted") and marks timings.json
-likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half its frames is marked
-"failed" with its reason and says so on one line. The faults and what each leaves: docs/faults.md.
+Ctrl-C, SIGTERM or SIGHUP (a closed terminal) stops the run, closes the recording (readable, stamped "interrupted")
+and marks timings.json likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half
+its frames is marked "failed" with its reason and says so on one line. Output nobody reads any more (a closed
+terminal, `| head`) is dropped and the run goes on. The faults and what each leaves: docs/faults.md.
 """
 
 # The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
@@ -37,7 +38,7 @@ from plvo.config import (
 )
 from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
-from plvo_app.guards import Terminated, check_port, deferred_signals, exit_status_of
+from plvo_app.guards import check_port, deferred_signals, exit_status_of, signal_name
 from plvo_app.run_outputs import (
     MIN_TRACKED_SHARE,
     Outputs,
@@ -287,6 +288,16 @@ def _start_outputs(outs: Outputs, cfg: SystemConfig, n_frames: int) -> RunLog:
     return runlog
 
 
+def _unstart(outs: Outputs, made: list[Path]) -> None:
+    """A run that ended before its first frame (Ctrl-C or a signal while the worker processes start, too few open
+    files, a thread or process that cannot be made): the files `_start_outputs` wrote and the folders made for
+    them are removed, so that no folder says "running" for ever and the same --out can be given again; the one
+    line (and for a bug, the log with its traceback: plvo_app.cli) says what happened."""
+    for name in ("config.toml", "run.log", "timings.json"):
+        (outs.out / name).unlink(missing_ok=True)
+    remove_made(made)
+
+
 def run(args: argparse.Namespace) -> int:
     serve = not args.no_serve
     if serve:
@@ -314,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         runlog = _start_outputs(outs, cfg, len(dataset))
     except BaseException:
-        remove_made(made)
+        _unstart(outs, made)
         raise
     # Made first: its worker processes start up (their imports take a second or two) while the recorder and the
     # viewer start, not only while the first frames are tracked.
@@ -326,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
         if system is not None:
             system.close()
         runlog.close()
+        _unstart(outs, made)
         raise
     viewer = None
     status, reason, error, exit_code, fps, at = "failed", "", None, 0, 0.0, [dataset.frame_indices[0]]
@@ -346,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
         status = "complete"
     except KeyboardInterrupt as exc:
         status, exit_code = "interrupted", exit_status_of(exc)
-        reason = "SIGTERM" if isinstance(exc, Terminated) else "Ctrl-C"
+        reason = signal_name(exc)
     except PlvoError as exc:
         error, reason = exc, str(exc)
         runlog.traceback(f"frame {at[0]}: {exc}")

@@ -1,14 +1,18 @@
 """Signals and ports, checked the same way by every command.
 
-SIGTERM (what `timeout`, `docker stop` and service managers send) is turned into `Terminated`, a KeyboardInterrupt,
-so that it takes Ctrl-C's path: the recording is stamped and closed, the results written and marked. During that
-clean-up `deferred_signals` holds further Ctrl-C / SIGTERM back (a second Ctrl-C must not lose the results).
+SIGTERM (what `timeout`, `docker stop` and service managers send), SIGHUP (a closed terminal, a dropped ssh
+connection), SIGQUIT (Ctrl-\\) and SIGUSR1/2 end a process by default, with no word and nothing written. Each is
+turned into `Terminated`, a KeyboardInterrupt, so that it takes Ctrl-C's path: the recording is stamped and closed,
+the results written and marked, exit 128 + the signal's number. During that clean-up `deferred_signals` holds further
+signals back (a second Ctrl-C must not lose the results).
 """
 
 from __future__ import annotations
 
 import errno
+import io
 import logging
+import os
 import signal
 import socket
 import sys
@@ -22,27 +26,44 @@ log = logging.getLogger(__name__)
 
 EXIT_INTERRUPTED = 128 + signal.SIGINT  # 130, as a shell reports Ctrl-C
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143
+# The signals whose default action ends the process without a word (SIGKILL and SIGSTOP cannot be caught)
+ENDING_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM arrived: handled like Ctrl-C, exits with 143."""
+    """A signal that ends a process arrived (SIGTERM by default): handled like Ctrl-C, exits with 128 + its number."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name
 
 
 def _raise_terminated(signum, frame) -> None:
-    raise Terminated()
+    raise Terminated(signum)
+
+
+def signal_name(interrupt: KeyboardInterrupt) -> str:
+    """'SIGTERM', 'SIGHUP', ... for a Terminated; 'Ctrl-C' for a KeyboardInterrupt of SIGINT."""
+    return interrupt.name if isinstance(interrupt, Terminated) else "Ctrl-C"
 
 
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
-    """Within: SIGTERM raises Terminated in the main thread (elsewhere signals cannot be set: left alone)."""
+    """Within: SIGTERM and the other ENDING_SIGNALS raise Terminated in the main thread (elsewhere signals cannot be
+    set: left alone)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    previous = {s: signal.signal(s, _raise_terminated) for s in ENDING_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 class Held:
@@ -60,12 +81,12 @@ class Held:
 
 @contextmanager
 def deferred_signals(what: str) -> Iterator[Held]:
-    """Within: Ctrl-C and SIGTERM are noted (once on stderr) but do not interrupt `what`."""
+    """Within: Ctrl-C, SIGTERM and the other ENDING_SIGNALS are noted (once on stderr) but do not interrupt `what`."""
     held = Held(what)
     if threading.current_thread() is not threading.main_thread():
         yield held
         return
-    previous = {s: signal.signal(s, held.note) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: signal.signal(s, held.note) for s in (signal.SIGINT, *ENDING_SIGNALS)}
     try:
         yield held
     finally:
@@ -73,8 +94,59 @@ def deferred_signals(what: str) -> Iterator[Held]:
             signal.signal(s, handler)
 
 
+class ReaderlessStream:
+    """sys.stderr or sys.stdout made to outlive its reader: once a write or flush fails because nobody reads any
+    more (`plvo-viz ... 2>&1 | head` has exited: EPIPE; the terminal was closed: EIO), later output is dropped
+    instead of failing the run as an unexpected error; the run goes on and writes its results. Everything else is
+    the wrapped stream's."""
+
+    _GONE = (errno.EPIPE, errno.EIO, errno.ECONNRESET)
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.gone = False
+
+    def _lost(self, exc: OSError) -> None:
+        if exc.errno not in self._GONE and not isinstance(exc, BrokenPipeError):
+            raise exc
+        self.gone = True
+        # what the stream still buffers is flushed at the exit: into /dev/null, not into a failure (exit 120)
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+        except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+            pass
+
+    def write(self, text: str) -> int:
+        if not self.gone:
+            try:
+                return self._stream.write(text)
+            except OSError as exc:
+                self._lost(exc)
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.gone:
+            try:
+                self._stream.flush()
+            except OSError as exc:
+                self._lost(exc)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def outlive_readers() -> None:
+    """Wrap sys.stdout and sys.stderr in ReaderlessStream (once): call before any handler or bar takes them."""
+    for name in ("stdout", "stderr"):
+        stream = getattr(sys, name)
+        if stream is not None and not isinstance(stream, ReaderlessStream):
+            setattr(sys, name, ReaderlessStream(stream))
+
+
 def exit_status_of(interrupt: KeyboardInterrupt) -> int:
-    return EXIT_TERMINATED if isinstance(interrupt, Terminated) else EXIT_INTERRUPTED
+    return 128 + interrupt.signum if isinstance(interrupt, Terminated) else EXIT_INTERRUPTED
 
 
 def check_port(port: int, option: str = "--port", host: str = "127.0.0.1") -> int:

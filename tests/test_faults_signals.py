@@ -4,11 +4,14 @@ during the clean-up loses nothing, and quitting the viewer after a complete run 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
+import time
 from pathlib import Path
 
+import pytest
 from faults_table import VIZ, fault, read_stderr_until, viz_env
 
 from plvo_app.rrd_reader import read_rrd
@@ -73,4 +76,65 @@ def test_quitting_the_viewer_after_a_complete_run(synth_seq, tmp_path):
     assert row.message in err and "interrupted" not in err and "Traceback" not in err
     timings = json.loads((tmp_path / "out" / "timings.json").read_text())
     assert timings["status"] == "complete" and (tmp_path / "out" / "poses.txt").is_file()
+    assert read_rrd(tmp_path / "run.rrd").properties["plvo_run:status"] == "complete"
+
+
+def _start_own_group(synth_seq: Path, cwd: Path, *extra: str) -> subprocess.Popen:
+    """plvo-viz as a terminal runs it: in a process group of its own, which the terminal's signals reach whole."""
+    cmd = ["--root", str(synth_seq), "--seq", "00", "--rrd", "run.rrd", "--out", "out", "--no-serve", *extra]
+    return subprocess.Popen(VIZ + cmd, cwd=cwd, env=_env(), stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+@pytest.mark.parametrize("signum,to_group", [(signal.SIGHUP, True), (signal.SIGQUIT, False)],
+                         ids=["sighup-closed-terminal", "sigquit"])
+def test_other_ending_signals_are_handled_like_ctrl_c(synth_seq, tmp_path, signum, to_group):
+    """A closed terminal or ssh connection (SIGHUP to the whole process group, the worker processes too) and
+    Ctrl-\\ (SIGQUIT) used to end the run with no word, its results "running" for ever and the recording without
+    its footer: now they take Ctrl-C's path."""
+    row = fault("signal-other")
+    p = _start_own_group(synth_seq, tmp_path)
+    seen = read_stderr_until(p, "frame 3: keyframe")
+    os.killpg(p.pid, signum) if to_group else p.send_signal(signum)
+    err = seen + p.stderr.read()
+    assert p.wait(timeout=120) == 128 + signum, err
+    assert row.message in err
+    _check_interrupted(tmp_path, err, signal.Signals(signum).name)
+
+
+def test_ctrl_c_during_start_up_leaves_no_running_results(synth_seq, tmp_path):
+    """Ctrl-C to the whole group while the worker processes start (their imports take a second or two): one line,
+    exit 130, no worker's traceback, and no results folder left "running" (the start-up's files are removed, so
+    the same --out can be given again; a signal that lands once the frames run leaves them "interrupted")."""
+    row = fault("startup-interrupted")
+    p = _start_own_group(synth_seq, tmp_path)
+    timings = tmp_path / "out" / "timings.json"
+    t0 = time.time()
+    while not timings.exists() and p.poll() is None and time.time() - t0 < 120:
+        time.sleep(0.005)  # the outputs are made: the worker processes are started next
+    os.killpg(p.pid, signal.SIGINT)
+    err = p.stderr.read()
+    assert p.wait(timeout=120) == row.exit, err
+    assert row.message in err and "Traceback" not in err and "Error" not in err, err
+    if timings.exists():  # the signal came once the frames ran
+        assert json.loads(timings.read_text())["status"] == "interrupted", err
+        return
+    assert not (tmp_path / "out").exists(), list((tmp_path / "out").iterdir())
+    again = subprocess.run(VIZ + ["--root", str(synth_seq), "--seq", "00", "--out", "out", "--frames", "0:3",
+                                  "--rrd", "again.rrd", "--no-serve"],
+                           cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-2000:]
+
+
+def test_a_closed_stderr_does_not_end_the_run(synth_seq, tmp_path):
+    """`plvo-viz ... 2>&1 | head`: the reader of stderr leaves after the first lines; the run used to die as an
+    unexpected error on its next log line. Now what nobody reads is dropped and the run completes."""
+    row = fault("stderr-closed")
+    p = _start_own_group(synth_seq, tmp_path, "--frames", "0:8")
+    read_stderr_until(p, "frames (0..")
+    p.stderr.close()
+    assert p.wait(timeout=300) == row.exit
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    assert timings["status"] == "complete" and timings["frames_done"] == 8, timings
+    assert (tmp_path / "out" / "poses.txt").read_text().count("\n") == 8
     assert read_rrd(tmp_path / "run.rrd").properties["plvo_run:status"] == "complete"
