@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset
+from plvo.eval.kitti_metric import absolute_trajectory_error
 from plvo.eval.kitti_variants import variant
 from plvo.run import run_dataset
 from plvo.tracking.time_offset import TimeOffsetEstimator
@@ -61,7 +62,7 @@ def late_scans(synth_sequence_factory, tmp_path_factory):
     """The looping synthetic town (15 m/s, turns) with every frame's scan taken from the next frame: the scans
     0.1 s after the images."""
     root = synth_sequence_factory(150, seed=177, speed_mps=15.0, loop=True)
-    return variant(root, "00", tmp_path_factory.mktemp("late") / "late", 60, scan_of=lambda i: i + 1)
+    return root, variant(root, "00", tmp_path_factory.mktemp("late") / "late", 60, scan_of=lambda i: i + 1)
 
 
 def _max_error(ds, poses) -> float:
@@ -72,7 +73,8 @@ def _max_error(ds, poses) -> float:
 
 def test_late_scans_are_named_and_corrected_when_stated(late_scans, caplog):
     row = fault("time-offset")
-    ds = open_dataset(late_scans, "00")
+    paired_right, late = late_scans
+    ds = open_dataset(late, "00")
     with caplog.at_level(logging.WARNING, logger="plvo.tracking.frontend"):
         out = run_dataset(ds, SystemConfig())
     found = out.trust["time_offset"]["found"]
@@ -86,3 +88,10 @@ def test_late_scans_are_named_and_corrected_when_stated(late_scans, caplog):
     # the scans paired right give 0.11 m over the first 80 frames (0.05 m over 149, docs/results/crosscheck/)
     assert _max_error(ds, stated.poses) < 0.25, _max_error(ds, stated.poses)
     assert stated.trust["time_offset"]["found"] is None  # nothing more to name
+    # the issue's measure: the ATE within 2x of the run with the scans paired right (here, 60 frames on the AMD
+    # EPYC machine: stated 0.021, paired right 0.017, unstated 0.248 m; over 149 frames 0.021, 0.016, 0.411)
+    aligned = run_dataset(open_dataset(paired_right, "00", slice(0, 60)), SystemConfig())
+    gt = np.asarray(ds.gt_T_world_cam, float)
+    ate = {name: absolute_trajectory_error(gt, np.asarray(r.poses, float)).rmse_m
+           for name, r in (("unstated", out), ("stated", stated), ("paired right", aligned))}
+    assert ate["stated"] < 2 * ate["paired right"] < ate["unstated"], ate
