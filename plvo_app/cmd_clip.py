@@ -34,8 +34,27 @@ def _frame_range(batch: pa.RecordBatch) -> pa.Array | None:
     return batch.column("frame") if "frame" in batch.schema.names else None
 
 
-def clip(src: Path, a: int, b: int, out: Path) -> int:
-    """Write frames [a, b) of `src` (and its static data) to `out`; returns the number of rows kept."""
+def _held_window(src: Path, chunks: list, a: int, b: int) -> tuple[int, int]:
+    """The part of frames [a, b) that the recording holds; RecordingError when it holds none of them (a clip of
+    nothing, labelled with frames it does not hold, would "reproduce" anything)."""
+    lo, hi = None, None
+    for chunk in chunks:
+        frames = None if chunk.is_static else _frame_range(chunk.to_record_batch())
+        if frames is None or len(frames) == 0:
+            continue
+        f0, f1 = pc.min(frames).as_py(), pc.max(frames).as_py()
+        if f0 is not None:
+            lo, hi = f0 if lo is None else min(lo, f0), f1 if hi is None else max(hi, f1)
+    if lo is None:
+        raise RecordingError(f"{src}: holds no frames to clip")
+    if b <= lo or a > hi:
+        raise RecordingError(f"--frames {a}:{b}: outside the recording, which holds frames {lo}..{hi} ({src})")
+    return max(a, lo), min(b, hi + 1)
+
+
+def clip(src: Path, a: int, b: int, out: Path) -> tuple[int, int, int]:
+    """Write frames [a, b) of `src` (and its static data) to `out`, the window cut to the frames the recording
+    holds -> (rows kept, the window's first frame, its end)."""
     if not src.is_file():
         raise RecordingError(f"{src}: no such recording file")
     if out.exists():
@@ -44,6 +63,7 @@ def clip(src: Path, a: int, b: int, out: Path) -> int:
         chunks = list(open_rrd(src).stream())
     except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
         raise RecordingError(f"{src}: not a readable Rerun recording ({exc})") from None
+    a, b = _held_window(src, chunks, a, b)
     # the last row before `a` of each entity that carries over: (frame, chunk index, row)
     last: dict[str, tuple[int, int, int]] = {}
     for ci, chunk in enumerate(chunks):
@@ -77,12 +97,12 @@ def clip(src: Path, a: int, b: int, out: Path) -> int:
     kept.append(rr.chunk.Chunk.from_property("plvo_clip", rr.AnyValues(source=str(src), frames=f"{a}:{b}")))
     out.parent.mkdir(parents=True, exist_ok=True)
     write_chunks(out, kept, recording_id=f"{src.stem}_{a}_{b}")
-    return n_rows
+    return n_rows, a, b
 
 
 def run(args: argparse.Namespace) -> int:
     a, b = parse_window(args.frames)
-    n = clip(args.file, a, b, args.out)
+    n, a, b = clip(args.file, a, b, args.out)
     print(f"{args.out}: frames {a}..{b - 1} of {args.file} ({n} rows, {args.out.stat().st_size / 1e6:.1f} MB)",
           file=sys.stderr)
     return 0

@@ -27,7 +27,7 @@ from plvo.errors import ConfigError, RecordingError
 from plvo.geometry.se3 import inv, rotation_angle
 from plvo.types import Frame
 from plvo_app.rrd_reader import RrdData, open_rrd, read_rrd
-from plvo_app.run_identity import calib_from_dict, decode_inputs, file_digest, input_files
+from plvo_app.run_identity import calib_from_dict, calib_to_dict, decode_inputs, file_digest, input_files
 from plvo_app.scene_common import _pose_from_row
 
 log = logging.getLogger(__name__)
@@ -170,7 +170,30 @@ def open_inputs(path: Path, data: RrdData, root: Path | None) -> tuple[Any, str,
         root = Path(recorded_root)
     frames = json.loads(ident["frames"]) if isinstance(ident.get("frames"), str) else ident.get("frames")
     ds = open_dataset(root, str(ident["sequence"]), list(frames))
-    return ds, str(root), _check_hashes(ds, data)
+    return ds, str(root), _check_calibration(ds, ident) + _check_hashes(ds, data)
+
+
+def _check_calibration(ds, ident: dict[str, Any]) -> list[str]:
+    """The calibration read now against the recorded one (the camera matrix, the image size, the lidar's and the
+    camera's transforms), as the frames' files are checked by their hashes: a changed calibration file changes
+    every depth prior, and the run departing from frame 0 should say why."""
+    recorded = ident.get("calib")
+    if recorded is None:
+        return ["the recording holds no calibration: it cannot be checked"]
+    old = json.loads(recorded) if isinstance(recorded, str) else recorded
+    new = calib_to_dict(ds.calib)
+    changed = []
+    for key in ("K", "T_cam_velo", "T_cam0_cam", "width", "height", "lidar_elevation_offset_deg"):
+        if key not in old:
+            continue
+        a, b = np.asarray(old[key], float), np.asarray(new[key], float)
+        if a.shape != b.shape or not np.allclose(a, b, rtol=1e-9, atol=1e-12):
+            diff = "" if a.shape != b.shape else f" (largest change {np.abs(a - b).max():.6g})"
+            changed.append(f"{key}{diff}")
+    if not changed:
+        return ["calibration: as recorded"]
+    return [f"calibration: differs from the one recorded ({', '.join(changed)}): a changed calibration file "
+            "changes every depth prior"]
 
 
 def _entities(path: Path) -> set[str]:

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import xxhash
+from faults_table import fault
 
 from plvo.data.registry import open_dataset
 from plvo.errors import RecordingError
@@ -104,7 +105,25 @@ def test_a_changed_input_file_is_named(run, tmp_path):
     pts[0] += 1.0
     pts.tofile(scan)
     report = reproduce(rrd, copy)
-    assert report.notes[0] == f"frame 5: scan file {scan} differs from the one recorded"
+    assert report.notes[1] == f"frame 5: scan file {scan} differs from the one recorded"
+
+
+def test_a_changed_calibration_is_named(run, tmp_path):
+    """The frames' files all match their hashes, the calibration file does not: it used to read "all files match
+    the recorded hashes", then the run departed with no word of the calibration."""
+    root, rrd = run
+    copy = tmp_path / "root"
+    shutil.copytree(root, copy)
+    calib = copy / "sequences" / "00" / "calib.txt"
+    lines = calib.read_text().splitlines()
+    p0 = lines[0].split()
+    p0[1] = f"{float(p0[1]) * 1.01:.6e}"  # fx 1 % larger
+    calib.write_text("\n".join([" ".join(p0), *lines[1:]]) + "\n")
+    report = reproduce(rrd, copy)
+    row = fault("reproduce-calibration")
+    assert report.notes[0].startswith(f"{row.message} (K (largest change"), report.notes
+    assert report.notes[1].startswith("inputs: all") and not report.reproduces
+    assert reproduce(rrd, root).notes[0] == "calibration: as recorded"
 
 
 def test_clip_keeps_only_the_window_and_static_data(run, tmp_path):
@@ -122,6 +141,21 @@ def test_clip_keeps_only_the_window_and_static_data(run, tmp_path):
     assert data.temporal["/world/map/points"][4] == whole.temporal["/world/map/points"][before]
     with pytest.raises(RecordingError, match="already exists"):
         clip(rrd, 4, 7, out)
+
+
+def test_a_window_outside_the_recording_is_refused_and_one_partly_outside_is_cut(run, tmp_path):
+    """A clip of frames the recording does not hold used to be an empty file labelled with those frames (exit 0),
+    which `reproduce` then "reproduced"."""
+    row = fault("clip-outside")
+    _, rrd = run
+    out = tmp_path / "none.rrd"
+    with pytest.raises(RecordingError, match=row.message) as err:
+        clip(rrd, N + 10, N + 20, out)
+    assert f"holds frames 0..{N - 1}" in str(err.value) and not out.exists()
+    n, a, b = clip(rrd, N - 2, N + 50, tmp_path / "end.rrd")
+    data = read_rrd(tmp_path / "end.rrd")
+    assert (a, b) == (N - 2, N) and data.properties["plvo_clip:frames"] == f"{N - 2}:{N}"
+    assert set(data.frames()) == {N - 2, N - 1} and n > 0
 
 
 def test_not_a_recording_is_a_one_line_error(tmp_path):
