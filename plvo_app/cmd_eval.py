@@ -84,8 +84,11 @@ def metric_table(ev: SequenceEvaluation, gt: Path, est: Path) -> str:
     if ev.kitti.n_segments == 0:
         lines.append("  (no segment: the trajectory is shorter than 100 m; see the short relative error)")
     lines += [
-        f"ATE RMSE: {ev.ate_se3.rmse_m:.4f} m after SE(3) alignment, {ev.ate_sim3.rmse_m:.4f} m after Sim(3) "
-        f"alignment (scale {ev.ate_sim3.scale:.5f})",
+        f"ATE RMSE: {ev.ate_se3.rmse_m:.4f} m after SE(3) alignment, " + (
+            f"{ev.ate_sim3.rmse_m:.4f} m after Sim(3) alignment (scale {ev.ate_sim3.scale:.5f})"
+            if math.isfinite(ev.ate_sim3.rmse_m) else
+            "none after Sim(3) alignment: the ground truth does not move (a scale fitted to it would shrink the "
+            "estimate to a point)"),
         "short relative error (devkit error on short lengths, every frame a start):",
         *_table_rows(ev.short),
     ]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from faults_table import fault
 
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
 from plvo.eval.kitti_metric import evaluate_sequence
@@ -48,6 +49,24 @@ def test_json_output(scaled_pair, capsys):
     assert list(out["short"]) == ["5", "15"]
     assert out["short"]["15"]["t_err_pct"] == pytest.approx(2.0 * 15.5 / 15, rel=1e-9)
     assert out["ate_sim3_m"] < 1e-6 and out["ate_m"] > 1.0 and out["n_frames"] == 1000
+
+
+def test_a_truth_that_does_not_move_gets_no_sim3_score(tmp_path, capsys):
+    """A standing truth and an estimate that drove off: the Sim(3) fit used to shrink the estimate to a point and
+    report 0.0000 m (a perfect score); now it is none, said so, null in the JSON, and the SE(3) ATE tells the
+    drift."""
+    row = fault("metric-still-truth")
+    still = np.stack([np.eye(4)] * 20)
+    write_kitti_poses(tmp_path / "gt.txt", still)
+    write_kitti_poses(tmp_path / "est.txt", _line(20))
+    args = ["eval", "metric", "--gt", str(tmp_path / "gt.txt"), "--est", str(tmp_path / "est.txt")]
+    assert main(args) == row.exit
+    ate = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("ATE"))
+    assert row.message in ate and "after Sim(3) alignment (scale" not in ate, ate
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["ate_sim3_m"] is None and out["sim3_scale"] is None
+    assert out["ate_m"] == pytest.approx(np.sqrt(np.mean((0.5 * np.arange(20) - 4.75) ** 2)), rel=1e-9)
 
 
 def test_table_output(scaled_pair, capsys):

@@ -312,10 +312,22 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndar
     return R, t, s
 
 
+STILL_M = 1e-3  # a truth whose positions all lie within this of their mean does not move (for a Sim(3) fit)
+
+
+def _moves(p: np.ndarray) -> bool:
+    return bool(len(p) >= 2 and np.linalg.norm(p - p.mean(axis=0), axis=1).max() > STILL_M)
+
+
 def absolute_trajectory_error(gt: np.ndarray, est: np.ndarray, with_scale: bool = False) -> AteResult:
     """(N,4,4) gt and est -> RMSE etc. of camera positions after SE(3) (or Sim(3) with_scale) alignment."""
     gt, est = _check_pair(gt, est)
     p_gt, p_est = gt[:, :3, 3], est[:, :3, 3]
+    if with_scale and not _moves(p_gt):
+        # a truth that stands still is best fitted by shrinking the estimate to a point: a perfect score from a
+        # degenerate alignment. Undefined (NaN), said so by `plvo eval metric`.
+        nan = float("nan")
+        return AteResult(nan, nan, nan, nan, nan, np.full((4, 4), nan), np.full(len(gt), nan))
     if len(gt) < 3:  # too few points to fix a rotation: align the first positions only
         R, t, s = np.eye(3), p_gt[0] - p_est[0], 1.0
     else:
@@ -396,8 +408,8 @@ def evaluation_json(ev: SequenceEvaluation) -> dict:
         "r_err_deg_per_m": _json_number(ev.kitti.r_err_deg_per_m),
         "n_segments": ev.kitti.n_segments,
         "ate_m": ev.ate_se3.rmse_m,
-        "ate_sim3_m": ev.ate_sim3.rmse_m,
-        "sim3_scale": ev.ate_sim3.scale,
+        "ate_sim3_m": _json_number(ev.ate_sim3.rmse_m),
+        "sim3_scale": _json_number(ev.ate_sim3.scale),
         "segments": _per_length_json(ev.kitti),
         "short": _per_length_json(ev.short),
         "short_t_err_pct": _json_number(ev.short.t_err_pct),
