@@ -113,6 +113,30 @@ def test_calibration_non_finite_is_named(tmp_path, capsys):
     assert not (Path.cwd() / "recordings" / "07").exists()
 
 
+@pytest.mark.parametrize("what", ["zero focal length", "singular Tr", "scaled Tr"])
+def test_degenerate_calibration_is_named_where_it_is_read(tmp_path, capsys, what):
+    """A calibration that parses but cannot be a camera and a rigid mounting used to pass the reading and end the
+    run frames later as an unexpected error (or name the folder, not the file)."""
+    row = fault("calib-degenerate")
+    from plvo.data.kitti import KittiOdometry
+    from plvo_app.cli import main
+
+    seq_dir = _odometry_with_tr(tmp_path, {"zero focal length": "0 -1 0 0 0 0 -1 0 1 0 0 0",
+                                           "singular Tr": " ".join(["0"] * 12),
+                                           "scaled Tr": "0 -2 0 0 0 0 -2 0 2 0 0 0"}[what])
+    if what == "zero focal length":
+        text = (seq_dir / "calib.txt").read_text().splitlines()
+        text = [" ".join(["P0:", "0", *ln.split()[2:]]) if ln.startswith("P0:") else ln for ln in text]
+        (seq_dir / "calib.txt").write_text("\n".join(text) + "\n")
+    with pytest.raises(CalibrationError, match=row.message) as info:
+        KittiOdometry(tmp_path, "07")
+    assert str(seq_dir / "calib.txt") in str(info.value)
+    assert ("focal length fx 0" if what == "zero focal length" else "'Tr', the lidar's mounting") in str(info.value)
+    status = main(["run", "--root", str(tmp_path), "--seq", "07", "--no-serve"])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == row.exit and row.message in line and "calib.txt" in line
+
+
 def test_calibration_unparseable_is_not_missing(tmp_path):
     row = fault("calib-unparseable")
     from plvo.data.kitti import KittiOdometry

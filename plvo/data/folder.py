@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plvo.data.calib_check import check_calibration
 from plvo.data.calib_yaml import read_calib_yaml
 from plvo.data.dataset import FrameSelection, SelectedFrames, SourceOptions, select_frames
 from plvo.data.images import read_image_file, split_gray_color
@@ -114,7 +115,7 @@ class FolderDataset(SelectedFrames):
             raise DatasetError(f"{calib_path}: calibration is for {cf.camera.width}x{cf.camera.height} images, but "
                                f"{self._images[self._frames[0]]} is {first.shape[1]}x{first.shape[0]}")
         offset = cf.elevation_offset_deg if opts.lidar_elevation_offset_deg is None else opts.lidar_elevation_offset_deg
-        self.calib = cf.camera.calibration(cf.T_cam_lidar, offset)
+        self.calib = check_calibration(cf.camera.calibration(cf.T_cam_lidar, offset), str(calib_path))
         self._rectify = cf.camera.rectifier()
         times_file, poses_file = self.root / "times.txt", self.root / "poses.txt"
         all_times = _read_times(times_file, n) if times_file.is_file() else DEFAULT_PERIOD_S * np.arange(n)

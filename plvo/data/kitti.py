@@ -36,6 +36,7 @@ import pykitti
 import pykitti.utils as kitti_utils
 from PIL import Image, UnidentifiedImageError
 
+from plvo.data.calib_check import check_calibration, check_rotation
 from plvo.data.dataset import FrameSelection, SelectedFrames, select_frames
 from plvo.data.images import read_image_file, split_gray_color
 from plvo.data.pointcloud import check_scan_values
@@ -141,6 +142,9 @@ def _check_scan_size(path: Path, frame: int) -> None:
         raise DatasetError(f"{path}: empty scan (frame {frame})")
 
 
+_RIGID_KEYS = ("Tr", "R")  # odometry's lidar-to-camera; a raw drive's velo-to-cam and imu-to-velo rotations
+
+
 def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
     """pykitti's calib parser, with every needed key checked for presence, parseability, size and finite values.
 
@@ -170,6 +174,9 @@ def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
             raise CalibrationError(f"{path}:{lineno}: '{key}' has {matrix.size} numbers, expected {size}")
         if not np.all(np.isfinite(matrix)):
             raise CalibrationError(f"{path}:{lineno}: '{key}' holds NaN or infinite values")
+        if key in _RIGID_KEYS:  # before pykitti inverts it ("Singular matrix", naming no file)
+            check_rotation(matrix.reshape(3, -1)[:, :3],
+                           f"{path}:{lineno}: degenerate calibration: '{key}', the lidar's mounting,")
         data[key] = matrix
     return data
 
@@ -340,7 +347,7 @@ class KittiOdometry(_KittiSequence):
             lidar = _scene_lidar(seq_dir / SYNTH_MARKER)
             offset = _elevation_offset(lidar, seq_dir / SYNTH_MARKER)
             self.scans_compensated = not _swept(lidar)
-        calib = _calibration(data.calib, camera, width, height, offset)
+        calib = check_calibration(_calibration(data.calib, camera, width, height, offset), str(seq_dir / "calib.txt"))
         pose_file = root / "poses" / f"{sequence}.txt"
         if not pose_file.is_file() and (seq_dir / "poses.txt").is_file():  # SemanticKITTI keeps it in the sequence
             pose_file = seq_dir / "poses.txt"
@@ -446,7 +453,8 @@ class KittiRaw(_KittiSequence):
         scene_file = drive_dir / SYNTH_MARKER  # a twin of a raw drive says what elevation error its lidar carries
         if scene_file.is_file():
             offset = _elevation_offset(_scene_lidar(scene_file), scene_file)
-        calib = _calibration(data.calib, camera, width, height, offset)
+        calib = check_calibration(_calibration(data.calib, camera, width, height, offset),
+                                  f"{root / date} calib_*.txt")
         forward = _read_stamps(drive_dir / "velodyne_points" / "timestamps.txt", (0, *selected))
         gt = _raw_gt(data, calib.T_cam0_cam, _read_stamps(stamps, records), forward)
         self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt, camera)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plvo.data.calib_check import check_calibration
 from plvo.data.calib_yaml import read_calib_yaml
 from plvo.data.dataset import FrameSelection, SelectedFrames, SourceOptions, select_frames
 from plvo.data.images import split_gray_color
@@ -209,7 +210,7 @@ class RosbagDataset(SelectedFrames):
                                    f"{self.image_topic} has {width}x{height}")
         if opts.lidar_elevation_offset_deg is not None:
             offset = opts.lidar_elevation_offset_deg
-        return camera.calibration(T_cam_lidar, offset), camera.rectifier()
+        return check_calibration(camera.calibration(T_cam_lidar, offset), str(source)), camera.rectifier()
 
     def _bag_calibration(self, first: dict):
         if self._info is None:
