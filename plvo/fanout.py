@@ -18,6 +18,7 @@ import logging
 import multiprocessing
 import os
 import secrets
+import socket
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -28,6 +29,7 @@ log = logging.getLogger(__name__)
 
 RAY_SYSTEM_RETRIES = 3  # runs of a task again after its worker or node died (Ray's max_retries)
 NODE_CHECK_SECONDS = 120.0  # how long the path check waits for every node to answer
+CONNECT_SECONDS = 5.0  # how long a cluster address may take to accept a connection
 
 
 def worker_pool(workers: int) -> ProcessPoolExecutor:
@@ -70,6 +72,10 @@ def ray_unordered(fn: Callable, calls: Sequence[tuple], address: str, workers: i
         if address == "local":
             ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False)
         else:
+            problem = unreachable(address)
+            if problem:
+                raise error(f"--ray {address}: {problem}; start the cluster (`ray start --head` on its head node) "
+                            "or give its address, or --ray local")
             ray.init(address=address, log_to_driver=False)
         started = True
     try:
@@ -89,6 +95,24 @@ def ray_unordered(fn: Callable, calls: Sequence[tuple], address: str, workers: i
     finally:
         if started:
             ray.shutdown()
+
+
+def unreachable(address: str, timeout: float = CONNECT_SECONDS) -> str:
+    """'' when something accepts a TCP connection at a cluster address (HOST:PORT, ray://HOST:PORT), else why not.
+    Ray's own connect waits about two minutes for a head that is not there, printing its retries, and then takes
+    another half minute to give in to SIGTERM. "auto" (Ray finds the cluster itself) is not probed."""
+    if address == "auto":
+        return ""
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not port.isdigit():
+        return "not a cluster address (HOST:PORT, ray://HOST:PORT or auto)"
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        return f"no cluster answers at {host}:{port} ({reason})"
+    return ""
 
 
 def unseen_on_nodes(reads: Sequence[str], writes: Sequence[str], timeout: float = NODE_CHECK_SECONDS) -> str:

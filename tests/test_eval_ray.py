@@ -34,3 +34,26 @@ def test_ray_local_matches_in_process(tmp_path):
         # the same single-threaded KISS-ICP on the same scans: equal figures
         assert remote["short_t_err_pct"]["kiss"][seq] == pytest.approx(local["short_t_err_pct"]["kiss"][seq], abs=1e-6)
     assert (tmp_path / "ray" / "runs" / "kiss" / "b" / "poses.txt").is_file()
+
+
+def test_an_address_where_no_cluster_listens_is_one_line(tmp_path, capsys):
+    """`--ray HOST:PORT` with nothing there used to wait ~2 minutes with Ray's retry lines (and half a minute more
+    after SIGTERM); now a connection is tried for at most CONNECT_SECONDS first, and refused in one line."""
+    import socket
+
+    from faults_table import fault, one_error_line
+
+    from plvo_app.cli import main
+
+    row = fault("ray-no-cluster")
+    root = tmp_path / "data"
+    write_box_sequence(root, "a", n_frames=5, speed_mps=10.0, seed=0)
+    with socket.socket() as s:  # a port nothing listens on: bound, never listening
+        s.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{s.getsockname()[1]}"
+        out = tmp_path / "out"
+        assert main(["eval", "run", "--synth", str(root), "--ablations", "none", "--kiss", "--no-plots",
+                     "--out", str(out), "--ray", address]) == row.exit
+    line = one_error_line(capsys.readouterr().err)
+    assert row.message in line and address in line and "connection refused" in line.lower(), line
+    assert not (out / "runs").exists() and not ray.is_initialized()
