@@ -36,6 +36,7 @@ from plvo.config import config_to_dict, load_config
 from plvo.errors import DatasetError, OutputError
 from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
 from plvo.recording import RunInfo
+from plvo_app.run_outputs import refuse_existing
 from plvo_app.source_args import add_source_arguments, source_options
 
 log = logging.getLogger(__name__)
@@ -150,11 +151,14 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     dataset, root = _open(args)
     out = args.out or Path("results") / "bench" / f"{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
+    if args.soak:
+        out = args.out or Path("results") / "bench" / f"soak_{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
+    refuse_existing([out], "plvo bench", "choose another --out")  # before the minutes of timing
     machine = machine_info()
     command = shlex.join(sys.argv)
     info = run_info("bench", dataset, cfg, command)
     if args.soak:
-        return _soak(args, cfg, dataset, info, machine, command)
+        return _soak(args, cfg, dataset, info, machine, command, out)
     with tempfile.TemporaryDirectory(prefix="plvo-bench-") as tmp:
         report = run_bench(dataset, cfg, stages, args.repeat, RerunFactory(Path(tmp)), info, Reopen(args))
     if "system" in stages:
@@ -174,14 +178,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, command: str) -> int:
+def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, command: str, out: Path) -> int:
     """`plvo bench --soak`: the whole sequence as plvo-viz runs it; the JSON of plvo.eval.soak."""
     from tqdm import tqdm
 
     from plvo.eval.soak import run_soak
     from plvo_app.rerun_recorder import RerunRecorder
 
-    out = args.out or Path("results") / "bench" / f"soak_{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
     with tempfile.TemporaryDirectory(prefix="plvo-soak-") as tmp:
         rrd = Path(tmp) / "soak.rrd"
         with tqdm(total=len(dataset), unit="frame", desc=f"soak {dataset.sequence}", dynamic_ncols=True) as bar:

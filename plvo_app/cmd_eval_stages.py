@@ -57,10 +57,12 @@ def run(args: argparse.Namespace) -> int:
     from plvo.eval.stage_runs import run_side
     from plvo.eval.tasks import RunSpec
     from plvo_app.eval_run import parse_overrides
+    from plvo_app.run_outputs import refuse_existing
 
     started = provenance.start()
     if args.out.exists() and not args.out.is_dir():
         raise OutputError(f"--out {args.out}: is a file, not an output folder")
+    refuse_existing([args.out / "report.json", args.out / "report.md"], "plvo eval stages", "choose another --out")
     for text in (args.frames, args.twin_frames):
         if text:
             parse_frames(text)  # a bad range fails before anything runs

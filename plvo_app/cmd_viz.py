@@ -199,6 +199,9 @@ def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
         raise OutputError(f"{candidate}: cannot make the results folder ({exc.strerror or exc})") from None
 
 
+RESULTS_FILES = ("poses.txt", "timings.json", "config.toml", "run.log")  # what a run writes in its results folder
+
+
 def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Path]]:
     """The run's outputs -> (Outputs, the folders made for them here: the default results folder, claimed)."""
     run = f"{sequence}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -206,6 +209,10 @@ def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Pat
         raise RecordingError(f"{args.rrd}: already exists; plvo-viz never overwrites a recording")
     if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
         raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
+    if args.rrd is not None and args.out is not None and args.rrd.name in RESULTS_FILES \
+            and args.rrd.resolve().parent == args.out.resolve():
+        raise OutputError(f"--rrd {args.rrd}: the run writes its {args.rrd.name} there, over the recording; name "
+                          f"the recording otherwise (e.g. {args.out / 'run.rrd'})")
     out, made = args.out, []
     if out is None:
         out, made = _claim_folder(Path("results") / run)

@@ -26,6 +26,7 @@ from plvo.atomic import write_text_atomic
 from plvo.config import LineConfig, OrbConfig
 from plvo.errors import DatasetError, PlvoError
 from plvo.loop.vocabulary import Vocabulary
+from plvo_app.run_outputs import refuse_existing
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
@@ -110,6 +111,7 @@ def _train(name: str, descs: list[np.ndarray], args, info: str, show: bool) -> t
 def run(args: argparse.Namespace) -> int:
     show = not args.no_progress
     out = Path(args.out)
+    refuse_existing([out / "orb.npz", out / "lbd.npz", out / "vocab.json"], "plvo vocab", "choose another --out")
     sources: dict[str, list[Path]] = {}
     for d in args.images:
         sources[f"images:{d}"] = _list_images(Path(d))[:: max(1, args.every)]

@@ -35,6 +35,7 @@ from plvo.eval.kiss import KissOptions
 from plvo.eval.report import build_report, report_markdown
 from plvo.eval.report_files import write_report
 from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
+from plvo_app.run_outputs import refuse_existing
 from plvo_app.source_args import add_source_arguments
 
 log = logging.getLogger(__name__)
@@ -222,6 +223,9 @@ def run_run(args: argparse.Namespace) -> int:
         raise PlvoError(f"--workers {args.workers}: must be at least 1")
     if args.out.exists() and not args.out.is_dir():
         raise OutputError(f"--out {args.out}: is a file, not an output folder")
+    if not args.resume:  # --resume keeps the finished task folders and writes the report anew
+        refuse_existing([args.out / "report.json", args.out / "runs"], "plvo eval run",
+                        "--resume continues that evaluation; or choose another --out")
     twins = getattr(args, "twins", None)
     if args.ablations is None:
         args.ablations = TABLE_I_ABLATIONS if twins else "full"

@@ -92,6 +92,14 @@ def _check_room(need: dict[Path, int], n_frames: int) -> None:
                               f"{nbytes / 1e6:.1f} MB there; free some space or choose --rrd / --out elsewhere")
 
 
+def refuse_existing(files: list[Path], command: str, hint: str) -> None:
+    """The rule for what a command writes (docs/faults.md, "Outputs"): a file that exists is never replaced; the
+    command refuses, naming it, before any work (OutputError, exit 2). `hint` says what to do instead."""
+    for f in files:
+        if f.exists():
+            raise OutputError(f"{f}: already exists; {command} never replaces a file ({hint})")
+
+
 def remove_made(made: list[Path]) -> None:
     """Remove the folders `check_outputs` made, deepest first, if still empty (nothing the user had is touched)."""
     for p in reversed(made):

@@ -245,6 +245,46 @@ def test_eval_and_bench_out_of_the_wrong_kind(tmp_path, capsys):
     assert status == bench_row.exit and bench_row.message in line
 
 
+def test_no_command_replaces_an_output_that_exists(synth_seq, tmp_path, capsys):
+    """One rule for every command that writes (docs/faults.md, "Outputs"): an existing file is refused, named, before
+    any work, and left as it was. plvo bench, plvo eval run (without --resume), plvo eval stages and plvo vocab used
+    to replace theirs; plvo-viz took a recording named like a results file in its own results folder (poses.txt
+    then written over it)."""
+    from plvo_app.cli import main, main_viz
+
+    row = fault("output-exists")
+    mine = "mine\n"
+
+    def refused(status: int, path: Path) -> None:
+        line = one_error_line(capsys.readouterr().err)
+        assert status == row.exit and row.message in line and str(path) in line, line
+        assert path.read_text() == mine
+
+    bench = tmp_path / "bench.json"
+    bench.write_text(mine)
+    refused(main(["bench", "--root", str(synth_seq), "--seq", "00", "--stages", "features", "--out", str(bench)]),
+            bench)
+    report = tmp_path / "eval" / "report.json"
+    report.parent.mkdir()
+    report.write_text(mine)
+    refused(main(["eval", "run", "--root", str(synth_seq), "--seq", "00", "--kiss", "--out", str(report.parent)]),
+            report)
+    stages = tmp_path / "stages" / "report.md"
+    stages.parent.mkdir()
+    stages.write_text(mine)
+    refused(main(["eval", "stages", "--real", str(synth_seq), "00", "--twin", str(synth_seq), "00",
+                  "--out", str(stages.parent)]), stages)
+    vocab = tmp_path / "vocab" / "lbd.npz"
+    vocab.parent.mkdir()
+    vocab.write_text(mine)
+    refused(main(["vocab", "--out", str(vocab.parent), "--synth", "3", "--no-progress"]), vocab)
+    out = tmp_path / "out"
+    status = main_viz(["--root", str(synth_seq), "--seq", "00", "--frames", "0:3", "--out", str(out), "--rrd",
+                       str(out / "poses.txt"), "--no-serve"])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == row.exit and "over the recording" in line and not (out / "poses.txt").exists(), line
+
+
 def test_unexpected_error_in_any_command_is_one_line(tmp_path, capsys, monkeypatch):
     row = fault("unexpected-other")
     from plvo_app import cmd_eval
