@@ -370,6 +370,7 @@ def run(args: argparse.Namespace) -> int:
         error, reason = exc, str(exc)
         runlog.traceback(f"frame {at[0]}: {exc}")
     except Exception as exc:  # noqa: BLE001 - the last resort: one line, the traceback in the run log
+        at[0] = getattr(exc, "plvo_frame", at[0])  # an error of the frames read ahead: the frame it came from
         runlog.traceback(f"frame {at[0]}: unexpected error")
         cause = f": {type(exc.__cause__).__name__}: {exc.__cause__}" if exc.__cause__ is not None else ""
         error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc}{cause} (see the log "

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from faults_table import fault, one_error_line, viz_env
 
+from plvo.eval.kitti_variants import variant
 from plvo_app.rrd_reader import read_rrd
 
 _env = viz_env
@@ -303,6 +304,37 @@ def test_unexpected_error_names_the_frame(town, tmp_path, capsys, monkeypatch):
     assert "Traceback" in log and "ValueError: injected tracker bug" in log
     timings = _timings(tmp_path / "out")
     assert timings["status"] == "failed" and "frame 2" in timings["reason"] and timings["frames_done"] == 2
+
+
+def test_a_read_ahead_frame_is_named_by_its_own_number(synth_seq, tmp_path, capsys, monkeypatch):
+    """The frames are read ahead of the tracker: an unreadable scan of frame 4 (a folder in its place) used to be
+    "frame 2: unexpected IsADirectoryError", and an unexpected error while reading named the frame being tracked.
+    Now the scan is one line naming the file and its frame, and any other reading error names the frame read."""
+    row = fault("scan-unreadable")
+    monkeypatch.chdir(tmp_path)
+    root = variant(synth_seq, "00", tmp_path / "v", 8)
+    scan = root / "sequences" / "00" / "velodyne" / "000004.bin"
+    scan.unlink()
+    scan.mkdir()
+    status, err = _viz(["--root", str(root), "--seq", "00", "--no-serve", "--out", "out"], capsys)
+    line = one_error_line(err)
+    assert status == row.exit and row.message in line and f"{scan}: unreadable scan (frame 4)" in line, line
+    assert _timings(tmp_path / "out")["status"] == "failed"
+
+    from plvo.data.kitti import KittiOdometry
+
+    real = KittiOdometry.__getitem__
+
+    def reading_bug(self, i):
+        if self.frame_indices[i] == 5:
+            raise ValueError("injected reading bug")
+        return real(self, i)
+
+    monkeypatch.setattr(KittiOdometry, "__getitem__", reading_bug)
+    status, err = _viz(["--root", str(synth_seq), "--seq", "00", "--frames", "0:8", "--no-serve", "--out", "out2"],
+                       capsys)
+    line = one_error_line(err)
+    assert status == 1 and line.startswith("error: frame 5: unexpected ValueError: injected reading bug"), line
 
 
 def test_recording_cut_mid_message_is_read(tmp_path, caplog):

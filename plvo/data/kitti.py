@@ -299,7 +299,10 @@ class _KittiSequence(SelectedFrames):
     def _load_scan(self, i: int) -> np.ndarray:
         path, frame = self._scans[i], self._frames[i]
         _check_scan_size(path, frame)
-        scan = kitti_utils.load_velo_scan(str(path))
+        try:
+            scan = kitti_utils.load_velo_scan(str(path))
+        except OSError as exc:  # a folder in its place, a permission, an I/O error: the file and its frame
+            raise DatasetError(f"{path}: unreadable scan (frame {frame}): {exc.strerror or exc}") from None
         if np.isfinite(scan).all():  # the common case, 40x cheaper than the per-row mask below
             check_scan_values(scan, path, frame)
             return scan

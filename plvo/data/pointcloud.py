@@ -106,7 +106,10 @@ def read_scan_file(path: Path, frame: int) -> np.ndarray:
         if size <= 0 or size % 16:
             raise DatasetError(f"{path}: {size} bytes is not a positive multiple of 16 (float32 x,y,z,reflectance) "
                                f"(frame {frame})")
-        scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+        try:
+            scan = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+        except OSError as exc:  # a permission, an I/O error: the file and its frame
+            raise DatasetError(f"{path}: unreadable scan (frame {frame}): {exc.strerror or exc}") from None
     elif suffix in (".pcd", ".ply"):
         scan = _read_open3d(path, frame)
     else:

@@ -55,23 +55,43 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
     def load() -> None:
         lower_priority(niceness)
         started: collections.deque = collections.deque()  # with finish: (frame, what prepare returned)
+        at = [0]  # the position being read or prepared
+
+        def finish_first() -> Frame:
+            frame, pending = started.popleft()
+            at[0] = frame_position(frame)
+            return finish(frame, pending)  # type: ignore[misc]
+
         try:
             for i in range(len(dataset)):
+                at[0] = i
                 frame = dataset[i]
                 if finish is None:
                     if not hand_over(prepare(frame)):
                         return
                     continue
                 started.append((frame, prepare(frame)))
-                if len(started) > 1 and not hand_over(finish(*started.popleft())):
+                if len(started) > 1 and not hand_over(finish_first()):
                     return
             while started and finish is not None:  # started is empty without finish
-                if not hand_over(finish(*started.popleft())):
+                if not hand_over(finish_first()):
                     return
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
+            # the frame it came from, which the consumer has not reached yet: an error names that frame, not the
+            # one being tracked when it surfaces (up to `depth` frames earlier)
+            exc.plvo_frame = frame_number(at[0])  # type: ignore[attr-defined]
             hand_over(exc)
             return
         hand_over(_END)
+
+    numbers = getattr(dataset, "frame_indices", None)
+    position_of = {int(f): k for k, f in enumerate(numbers)} if numbers is not None else {}
+
+    def frame_number(position: int) -> int:
+        return int(numbers[position]) if numbers is not None and position < len(numbers) else position
+
+    def frame_position(frame: Frame) -> int:
+        return position_of.get(int(frame.index), 0)
 
     thread = threading.Thread(target=load, name="plvo-prefetch", daemon=True)
     thread.start()
