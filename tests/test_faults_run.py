@@ -337,6 +337,33 @@ def test_a_read_ahead_frame_is_named_by_its_own_number(synth_seq, tmp_path, caps
     assert status == 1 and line.startswith("error: frame 5: unexpected ValueError: injected reading bug"), line
 
 
+def test_a_file_that_blocks_is_named_within_a_bound(synth_seq, tmp_path, capsys, monkeypatch):
+    """An image path that blocks (a pipe nobody writes, a hung network mount) was waited on for minutes (the
+    worker timeout) and then named by the frame before it, without the file. Now a frame's files that take over
+    READ_TIMEOUT_S (60 s; 2 s here) to read are one line naming them."""
+    row = fault("read-blocks")
+    from plvo.data import prefetch
+
+    monkeypatch.setattr(prefetch, "READ_TIMEOUT_S", 2.0)
+    monkeypatch.chdir(tmp_path)
+    root = variant(synth_seq, "00", tmp_path / "v", 8)
+    image = root / "sequences" / "00" / "image_0" / "000004.png"
+    image.unlink()
+    os.mkfifo(image)
+    try:
+        t0 = time.monotonic()
+        status, err = _viz(["--root", str(root), "--seq", "00", "--no-serve", "--out", "out"], capsys)
+        line = one_error_line(err)
+        assert status == row.exit and row.message in line and line.startswith("error: frame 4: ") \
+            and str(image) in line, line
+        assert time.monotonic() - t0 < 120 and _timings(tmp_path / "out")["status"] == "failed"
+    finally:
+        try:  # lets the reading thread's open return and the thread end
+            os.close(os.open(image, os.O_WRONLY | os.O_NONBLOCK))
+        except OSError:  # no reader waits on it (ENXIO)
+            pass
+
+
 def test_recording_cut_mid_message_is_read(tmp_path, caplog):
     """A .rrd cut mid-message (SIGKILL while writing): `plvo view` reads what is complete and says so."""
     import rerun as rr

@@ -26,6 +26,7 @@ from plvo.types import Frame
 
 _END = object()
 _POLL_S = 0.5
+READ_TIMEOUT_S = 60.0  # one frame's files (a few MB) read in milliseconds; a minute is a path that blocks
 
 
 def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None = None,
@@ -42,6 +43,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
         return
     ready: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
+    reading = [-1, 0.0]  # the position whose files the thread is reading, since when (-1: not reading)
 
     def hand_over(item: Any) -> bool:
         while not stop.is_set():
@@ -65,7 +67,9 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
         try:
             for i in range(len(dataset)):
                 at[0] = i
+                reading[:] = [i, time.monotonic()]
                 frame = dataset[i]
+                reading[:] = [-1, 0.0]
                 if finish is None:
                     if not hand_over(prepare(frame)):
                         return
@@ -99,7 +103,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
     try:
         for position in range(len(dataset) + 1):
             try:
-                item = _next_ready(ready, thread, timeout_s, dataset, position)
+                item = _next_ready(ready, thread, timeout_s, dataset, position, reading)
             except RunFailed:
                 stuck = True
                 raise
@@ -114,8 +118,9 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
 
 
 def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float | None, dataset,
-                position: int) -> Any:
-    """The reading thread's next item; RunFailed when it takes over timeout_s or the thread ended without one."""
+                position: int, reading: list) -> Any:
+    """The reading thread's next item; RunFailed when it takes over timeout_s, when one frame's files take over
+    READ_TIMEOUT_S to read (naming them), or when the thread ended without one."""
     t0 = time.monotonic()
     while True:
         try:
@@ -124,10 +129,22 @@ def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float |
             if not thread.is_alive() and ready.empty():
                 raise RunFailed(f"the frame-reading thread ended before frame {_frame_name(dataset, position)}") \
                     from None
+            stuck_at, since = reading
+            if stuck_at >= 0 and time.monotonic() - since >= READ_TIMEOUT_S:
+                raise RunFailed(f"frame {_frame_name(dataset, stuck_at)}: its files were not read within "
+                                f"{READ_TIMEOUT_S:.0f} s ({_files(dataset, stuck_at)}): a path that blocks (a pipe, a "
+                                "hung network mount)?") from None
             waited = time.monotonic() - t0
             if timeout_s is not None and waited >= timeout_s:
                 raise RunFailed(f"frame {_frame_name(dataset, position)} was not read and prepared within "
                                 f"{waited:.0f} s (a read or the features process is stuck)") from None
+
+
+def _files(dataset, position: int) -> str:
+    """The files a file-based dataset reads for a frame (KITTI layouts, the folder layout), else what it is."""
+    names = [str(files[position]) for files in (getattr(dataset, "_images", None), getattr(dataset, "_scans", None))
+             if files is not None and position < len(files)]
+    return ", ".join(names) or type(dataset).__name__
 
 
 def _frame_name(dataset, position: int) -> str:
