@@ -11,6 +11,7 @@ import dataclasses
 import math
 import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from plvo.errors import ConfigError
@@ -128,10 +129,27 @@ ORDERED: tuple[tuple[str, str], ...] = (
 )
 
 
-# String fields with a fixed set of values.
+# String fields with a fixed set of values, checked when the file is read (some are used only off the defaults'
+# path: a typo there would otherwise pass until a run took that path).
 CHOICES: dict[str, tuple[str, ...]] = {"backend.executor": ("process", "thread"),
                                        "registration.deskew": ("auto", "on", "off"),
-                                       "backend.lidar_target": ("local_map", "keyframe")}
+                                       "backend.lidar_target": ("local_map", "keyframe"),
+                                       "registration.method": ("ndt", "icp", "gicp"),
+                                       "registration.fallback": ("ndt", "icp", "gicp", "none"),
+                                       "registration.zeta_formula": ("paper", "inverse")}
+
+# Every numeric field is bounded above too: by its range, else by the cap of its unit (the key's suffix), else by
+# the cap of its kind. A count of 1e12 features, a window of a million keyframes or a timeout of 1e30 s would pass
+# a lower bound alone and exhaust the memory or wait for ever.
+UNIT_CAPS: dict[str, float] = {"_m": 1e5, "_px": 1e5, "_deg": 360.0, "_s": 3600.0}
+COUNT_CAP = 1e8  # int fields: counts, iterations, gaps
+FACTOR_CAP = 1e6  # other float fields: factors, sigmas, weights, powers
+
+
+def bounded(key: str, rng: Range, is_int: bool) -> Range:
+    """`rng` with its upper bound capped (UNIT_CAPS by the key's suffix, else COUNT_CAP / FACTOR_CAP)."""
+    cap = next((c for suffix, c in UNIT_CAPS.items() if key.endswith(suffix)), COUNT_CAP if is_int else FACTOR_CAP)
+    return rng if rng.hi <= cap else dataclasses.replace(rng, hi=cap, hi_open=False)
 
 
 def numeric_fields(cfg: Any) -> dict[str, Any]:
@@ -153,8 +171,9 @@ def check_ranges(cfg: Any) -> None:
     for key, value in values.items():
         if key not in RANGES:
             raise ConfigError(f"config key '{key}' has no valid range in plvo/config_ranges.py")
-        rng = RANGES[key]
-        for v in value if isinstance(value, tuple) else (value,):
+        items = value if isinstance(value, tuple) else (value,)
+        rng = bounded(key, RANGES[key], all(isinstance(v, int) for v in items))
+        for v in items:
             if not rng.contains(float(v)):
                 raise ConfigError(f"config key '{key}' = {v!r} is out of range (must be {rng})")
     for key, allowed in CHOICES.items():
@@ -162,6 +181,12 @@ def check_ranges(cfg: Any) -> None:
         value = getattr(getattr(cfg, section), name)
         if value not in allowed:
             raise ConfigError(f"config key '{key}' = {value!r} must be one of {', '.join(allowed)}")
+    vocab = getattr(getattr(cfg, "loop", None), "vocab_dir", "")
+    if vocab:  # read by the loop closer's process at its start: a wrong folder said here, not as a worker's failure
+        missing = [n for n in ("orb.npz", "lbd.npz") if not (Path(vocab) / n).is_file()]
+        if missing:
+            raise ConfigError(f"config key 'loop.vocab_dir' = {vocab!r}: no {' or '.join(missing)} there "
+                              "(plvo vocab --out writes them; empty: the shipped vocabularies)")
     for small, large in ORDERED:
         if values[small] > values[large]:
             raise ConfigError(f"config key '{small}' = {values[small]!r} must not exceed '{large}' = "

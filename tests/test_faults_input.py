@@ -15,7 +15,7 @@ import pytest
 from faults_table import fault, one_error_line
 
 from plvo.config import ABLATIONS, SystemConfig, config_from_dict, load_config, with_ablation
-from plvo.config_ranges import ORDERED, RANGES, check_ranges, numeric_fields
+from plvo.config_ranges import ORDERED, RANGES, bounded, check_ranges, numeric_fields
 from plvo.errors import CalibrationError, ConfigError, TrajectoryError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,11 +47,12 @@ def test_every_numeric_field_has_a_range_and_the_defaults_are_in_it():
 def test_each_fields_boundaries_are_refused_by_dotted_name():
     defaults = numeric_fields(SystemConfig())
     checked = 0
-    for key, rng in RANGES.items():
+    for key, declared in RANGES.items():
         value = defaults[key]
-        bounds = [(rng.lo, rng.lo_open, True)] if math.isfinite(rng.lo) else []
-        bounds += [(rng.hi, rng.hi_open, False)] if math.isfinite(rng.hi) else []
-        assert bounds, key
+        rng = bounded(key, declared, all(isinstance(v, int) for v in (value if isinstance(value, tuple) else
+                                                                      (value,))))
+        assert math.isfinite(rng.lo) and math.isfinite(rng.hi), (key, rng)  # every field bounded both ways
+        bounds = [(rng.lo, rng.lo_open, True), (rng.hi, rng.hi_open, False)]
         for bound, is_open, below in bounds:
             bad = _outside(key, value, bound, is_open, below)
             with pytest.raises(ConfigError, match=rf"config key '{key}' = .* is out of range"):
@@ -66,6 +67,22 @@ def test_each_fields_boundaries_are_refused_by_dotted_name():
             if not is_open and not any(key in pair for pair in ORDERED):
                 config_from_dict(_nested(key, (inside,) if isinstance(value, tuple) else inside))
     assert checked >= len(RANGES)
+
+
+def test_choices_and_the_vocabulary_folder_are_checked_when_read(tmp_path):
+    """Choice strings that only the code using them checked (registration.method and fallback, unused at the
+    defaults' local map; zeta_formula), and a vocabulary folder first read by the loop closer's process: each
+    is now refused when the config is read, naming the key."""
+    for section, key, value in (("registration", "method", "nd"), ("registration", "fallback", "off"),
+                                ("registration", "zeta_formula", "inverted")):
+        with pytest.raises(ConfigError, match=rf"'{section}.{key}' = '{value}' must be one of"):
+            config_from_dict({section: {key: value}})
+    with pytest.raises(ConfigError, match=r"'loop.vocab_dir' = .*: no orb.npz or lbd.npz there"):
+        config_from_dict({"loop": {"vocab_dir": str(tmp_path)}})
+    with pytest.raises(ConfigError, match=r"'orb.n_features' = 1000000000 is out of range \(must be \[1, 1e\+08\]\)"):
+        config_from_dict({"orb": {"n_features": 10**9}})
+    with pytest.raises(ConfigError, match=r"'backend.worker_timeout_s' = 1e\+30 is out of range"):
+        config_from_dict({"backend": {"worker_timeout_s": 1e30}})
 
 
 def test_ordered_fields_are_refused_when_crossed():
