@@ -73,9 +73,11 @@ def test_choices_and_the_vocabulary_folder_are_checked_when_read(tmp_path):
     """Choice strings that only the code using them checked (registration.method and fallback, unused at the
     defaults' local map; zeta_formula), and a vocabulary folder first read by the loop closer's process: each
     is now refused when the config is read, naming the key."""
+    row = fault("config-choice")
+    assert row.exit == ConfigError.exit_status
     for section, key, value in (("registration", "method", "nd"), ("registration", "fallback", "off"),
                                 ("registration", "zeta_formula", "inverted")):
-        with pytest.raises(ConfigError, match=rf"'{section}.{key}' = '{value}' must be one of"):
+        with pytest.raises(ConfigError, match=rf"'{section}.{key}' = '{value}' {row.message}"):
             config_from_dict({section: {key: value}})
     with pytest.raises(ConfigError, match=r"'loop.vocab_dir' = .*: no orb.npz or lbd.npz there"):
         config_from_dict({"loop": {"vocab_dir": str(tmp_path)}})
