@@ -281,12 +281,15 @@ def compare(old: RrdData, new: RrdData, tol_m: float, tol_deg: float, report: Re
         if report.pose_frame is None and (dm > tol_m or ddeg > tol_deg):
             report.pose_frame, report.pose_diff = f, (dm, ddeg)
     sa, sb = _stage_values(old), _stage_values(new)
+    partial = _ended_early(old)
     compared = set(report.frames) & set(a)  # a clip holds only its window: the frames before it are not compared
     changes: list[tuple[int, int, str]] = []
     for name in sorted(set(sa) | set(sb)):
         va, vb = sa.get(name, {}), sb.get(name, {})
         for f in sorted((set(va) | set(vb)) & compared):
             x, y = va.get(f), vb.get(f)
+            if x is None and partial:  # the recorded run ended before writing it
+                continue
             if x is None or y is None or abs(x - y) > 1e-9 * max(1.0, abs(x)):
                 stage = KEYFRAME_CONSEQUENCES.get(name, name.split("/")[0])
                 rank = STAGE_ORDER.index(stage) if stage in STAGE_ORDER else len(STAGE_ORDER)
@@ -296,6 +299,13 @@ def compare(old: RrdData, new: RrdData, tol_m: float, tol_deg: float, report: Re
         f, _, what = min(changes)
         same_frame = sum(1 for c in changes if c[0] == f) - 1
         report.stage_frame, report.stage = f, what + (f" (and {same_frame} more at that frame)" if same_frame else "")
+
+
+def _ended_early(data: RrdData) -> bool:
+    """The recorded run was interrupted or failed: some stage results of its last frames were never written."""
+    status = data.properties.get("plvo_run:status")
+    status = _list(status)[0] if status is not None else "complete"
+    return str(status) not in ("complete", "degraded")
 
 
 def _fmt(v: float | None) -> str:
@@ -323,6 +333,9 @@ def reproduce(path: Path, root: Path | None = None, overrides: dict[str, Any] | 
         out = keep or Path(tmp) / "rerun.rrd"
         rerun_inputs(_Prefix(dataset, len(frames)), cfg, out)
         new = read_rrd(out, content=COMPARED)
+    if _ended_early(old):
+        notes.append(f"the recorded run ended {_list(old.properties['plvo_run:status'])[0]}: the stage results it "
+                     "never wrote are not compared")
     report = Report(source, frames, notes)
     compare(old, new, tol_m, tol_deg, report)
     return report

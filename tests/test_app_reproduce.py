@@ -126,6 +126,33 @@ def test_a_changed_calibration_is_named(run, tmp_path):
     assert reproduce(rrd, root).notes[0] == "calibration: as recorded"
 
 
+def test_a_failed_run_reproduces_on_what_it_wrote(run, tmp_path, monkeypatch):
+    """A run that failed at frame 7 (an injected tracker bug) never wrote some stage results of its last frames
+    (the map's counts of frame 6): rerun on the same data, that used to read "a stage result changed: frame 6:
+    map/lines absent -> 63". Only what the recorded run wrote is compared now."""
+    row = fault("reproduce-partial")
+    from plvo.tracking.frontend import Frontend
+
+    root, _ = run
+    real = Frontend.track
+
+    def track(self, frame):
+        if frame.index == 7:
+            raise ValueError("injected tracker bug")
+        return real(self, frame)
+
+    monkeypatch.setattr(Frontend, "track", track)
+    cfg = tmp_path / "det.toml"
+    cfg.write_text('[backend]\nconcurrent = false\nexecutor = "thread"\n')
+    rrd = tmp_path / "failed.rrd"
+    assert main_viz(["--root", str(root), "--seq", "00", "--frames", f"0:{N}", "--config", str(cfg), "--no-serve",
+                     "--rrd", str(rrd), "--out", str(tmp_path / "out")]) == 1
+    monkeypatch.setattr(Frontend, "track", real)
+    report = reproduce(rrd, root)
+    assert report.frames == list(range(7)) and report.reproduces, report.lines(0.01, 0.1)
+    assert any(row.message in n for n in report.notes), report.notes
+
+
 def test_clip_keeps_only_the_window_and_static_data(run, tmp_path):
     _, rrd = run
     out = tmp_path / "clip.rrd"
