@@ -28,7 +28,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from plvo.errors import PlvoError  # noqa: E402
 from plvo.heap import keep_freed_memory  # noqa: E402
 from plvo_app import cmd_viz  # noqa: E402
-from plvo_app.guards import Terminated, exit_status_of, outlive_readers, sigterm_as_interrupt  # noqa: E402
+from plvo_app.guards import (  # noqa: E402
+    Terminated,
+    exit_status_of,
+    limit_reached,
+    outlive_readers,
+    sigterm_as_interrupt,
+)
 
 # The tracking process reads, decodes and ships a frame's arrays every frame: keep freed memory for the next one
 # (plvo.heap; the worker processes do the same).
@@ -78,7 +84,9 @@ def _guarded(func, args) -> int:
             return exit_status_of(exc)
         except Exception as exc:  # noqa: BLE001 - the last resort
             where = _write_traceback()
-            print(f"error: unexpected {type(exc).__name__}: {exc} (see the log {where})", file=sys.stderr)
+            limit = limit_reached(exc)
+            what = limit if limit is not None else f"unexpected {type(exc).__name__}: {exc}"
+            print(f"error: {what} (see the log {where})", file=sys.stderr)
             return 1
 
 

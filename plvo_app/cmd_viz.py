@@ -38,7 +38,7 @@ from plvo.config import (
 )
 from plvo.errors import DatasetError, OutputError, PlvoError, RecordingError, RunFailed
 from plvo.recording import FanOut, RunInfo
-from plvo_app.guards import check_port, deferred_signals, exit_status_of, signal_name
+from plvo_app.guards import check_port, deferred_signals, exit_status_of, limit_reached, signal_name
 from plvo_app.run_outputs import (
     MIN_TRACKED_SHARE,
     Outputs,
@@ -373,8 +373,9 @@ def run(args: argparse.Namespace) -> int:
         at[0] = getattr(exc, "plvo_frame", at[0])  # an error of the frames read ahead: the frame it came from
         runlog.traceback(f"frame {at[0]}: unexpected error")
         cause = f": {type(exc.__cause__).__name__}: {exc.__cause__}" if exc.__cause__ is not None else ""
-        error = RunFailed(f"frame {at[0]}: unexpected {type(exc).__name__}: {exc}{cause} (see the log "
-                          f"{runlog.path})")
+        limit = limit_reached(exc)
+        what = limit if limit is not None else f"unexpected {type(exc).__name__}: {exc}{cause}"
+        error = RunFailed(f"frame {at[0]}: {what} (see the log {runlog.path})")
         reason = str(error)
     # From here to the exit, Ctrl-C and SIGTERM are held: the clean-up is not cut short by a second Ctrl-C, and
     # after a complete run a signal quits the viewer (exit 0, nothing said "interrupted").

@@ -145,6 +145,24 @@ def outlive_readers() -> None:
             setattr(sys, name, ReaderlessStream(stream))
 
 
+def limit_reached(exc: BaseException) -> str | None:
+    """What a resource limit looks like when it ends a command (too few open files, no thread or process can be
+    started, no memory), in words that name the limit; None for any other exception (a bug: "unexpected")."""
+    import resource
+
+    if isinstance(exc, OSError) and exc.errno in (errno.EMFILE, errno.ENFILE):
+        soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+        return (f"too many open files (this process may open {soft}; a plvo-viz run opens about 30 at once, more "
+                "with the viewer: raise it with `ulimit -n`)")
+    if isinstance(exc, RuntimeError) and "can't start new thread" in str(exc):
+        return "a thread could not be started (a limit on memory or processes: `ulimit -v`, `ulimit -u`?)"
+    if isinstance(exc, MemoryError) or (isinstance(exc, OSError) and exc.errno in (errno.ENOMEM, errno.EAGAIN)):
+        return f"out of memory or processes ({type(exc).__name__}: {exc}; a limit: `ulimit -v`, `ulimit -u`?)"
+    if isinstance(exc, ImportError) and "failed to map segment" in str(exc):
+        return f"a library could not be loaded: out of memory ({exc}; a limit: `ulimit -v`?)"
+    return None
+
+
 def exit_status_of(interrupt: KeyboardInterrupt) -> int:
     return 128 + interrupt.signum if isinstance(interrupt, Terminated) else EXIT_INTERRUPTED
 

@@ -138,3 +138,35 @@ def test_a_closed_stderr_does_not_end_the_run(synth_seq, tmp_path):
     assert timings["status"] == "complete" and timings["frames_done"] == 8, timings
     assert (tmp_path / "out" / "poses.txt").read_text().count("\n") == 8
     assert read_rrd(tmp_path / "run.rrd").properties["plvo_run:status"] == "complete"
+
+
+def test_too_few_open_files_is_one_line_naming_the_limit(synth_seq, tmp_path):
+    """A start-up under `ulimit -n 20`: it used to end as "unexpected OSError" (and before that left its results
+    folder "running"); now one line names the limit, and nothing is left."""
+    import resource
+
+    row = fault("limit-reached")
+
+    def few_files() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (20, 20))
+
+    p = subprocess.run(VIZ + ["--root", str(synth_seq), "--seq", "00", "--frames", "0:3", "--rrd", "run.rrd",
+                              "--out", "out", "--no-serve"], cwd=tmp_path, env=_env(), capture_output=True, text=True,
+                       timeout=300, preexec_fn=few_files)
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
+    assert p.returncode == row.exit and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    assert row.message in lines[0] and "may open 20" in lines[0] and "unexpected" not in lines[0], lines
+    timings = tmp_path / "out" / "timings.json"
+    assert not timings.exists() or json.loads(timings.read_text())["status"] == "failed"
+
+
+def test_limits_are_named_not_unexpected():
+    import errno as e
+
+    from plvo_app.guards import limit_reached
+
+    assert "a thread could not be started" in limit_reached(RuntimeError("can't start new thread"))
+    assert "out of memory" in limit_reached(MemoryError())
+    assert "out of memory" in limit_reached(ImportError("x.so: failed to map segment from shared object"))
+    assert "too many open files" in limit_reached(OSError(e.EMFILE, "Too many open files"))
+    assert limit_reached(ValueError("a bug")) is None and limit_reached(OSError(e.ENOENT, "no such file")) is None
