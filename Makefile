@@ -1,11 +1,14 @@
 # The two commands of the README. ARGS passes options to plvo-viz, e.g. make run ARGS="--seq 04 --root ../shared/data/kitti".
-.PHONY: run test bench lint
+.PHONY: run test test-busy bench lint
 run:
 	bash scripts/setup.sh && .venv/bin/plvo-viz $(ARGS)
 # The lint and type checks first (seconds), then the suite
 test:
 	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app tests scripts && .venv/bin/mypy plvo && \
 	.venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
+# The suite with a busy loop on one core throughout (the bounds hold on a loaded machine too)
+test-busy:
+	bash scripts/setup.sh --test && bash scripts/test_busy.sh $(ARGS)
 bench:
 	bash scripts/setup.sh && .venv/bin/plvo bench $(ARGS)
 # Style (ruff, the rules in pyproject.toml) and types (mypy on plvo/, the settings in pyproject.toml)

@@ -222,9 +222,21 @@ def _check_hashes(ds, data: RrdData) -> list[str]:
         for kind, file, h in (("image", image, want[f][0]), ("scan", scan, want[f][1])):
             if not file_digest(file, algorithm).startswith(str(h)):
                 bad.append(f"frame {f}: {kind} file {file} differs from the one recorded")
+    bad += _changed_times(ds, data, frames)
     if not bad:
         return [f"inputs: all {2 * len(want)} files match the recorded hashes"]
     return bad[:5] + ([f"... and {len(bad) - 5} more input files differ"] if len(bad) > 5 else [])
+
+
+def _changed_times(ds, data: RrdData, frames: list) -> list[str]:
+    """The frames whose time (times.txt, a bag's stamps) differs from the recorded one: the motion model, the gap
+    check and deskewing read them, so a changed time changes the run as a changed file does."""
+    recorded = data.properties.get("plvo_inputs:times")
+    if recorded is None:  # a recording made before the times were kept
+        return []
+    now = dict(zip(map(int, ds.frame_indices), np.asarray(ds.times, float)))
+    return [f"frame {f}: its time {now[int(f)]:.6f} s differs from the one recorded ({float(t):.6f} s)"
+            for f, t in zip(frames, _list(recorded)) if int(f) in now and abs(now[int(f)] - float(t)) > 1e-6]
 
 
 def _list(v: Any) -> list:

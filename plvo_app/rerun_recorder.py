@@ -339,7 +339,7 @@ class RerunRecorder:
             frames = sorted(self._hashes)
             self.rec.send_property("plvo_inputs", rr.AnyValues(
                 frames=json.dumps(frames), hash=INPUT_HASH, image_hash=[self._hashes[f][0] for f in frames],
-                scan_hash=[self._hashes[f][1] for f in frames]))
+                scan_hash=[self._hashes[f][1] for f in frames], times=[self._times[f] for f in frames]))
         if self._sink is None:
             self.rec.flush()
             return

@@ -153,6 +153,21 @@ def test_a_failed_run_reproduces_on_what_it_wrote(run, tmp_path, monkeypatch):
     assert any(row.message in n for n in report.notes), report.notes
 
 
+def test_a_changed_frame_time_is_named(run, tmp_path):
+    """The frames' times are input too (the motion model, the gap check and deskewing read them): a times.txt
+    changed at frame 5, every file unchanged, used to pass as "all files match"."""
+    root, rrd = run
+    copy = tmp_path / "root"
+    shutil.copytree(root, copy)
+    times = copy / "sequences" / "00" / "times.txt"
+    values = times.read_text().split()
+    values[5] = f"{float(values[5]) + 0.05:.6e}"
+    times.write_text("\n".join(values) + "\n")
+    report = reproduce(rrd, copy)
+    assert report.notes[1].startswith("frame 5: its time "), report.notes
+    assert reproduce(rrd, root).notes[1].startswith("inputs: all")
+
+
 def test_clip_keeps_only_the_window_and_static_data(run, tmp_path):
     _, rrd = run
     out = tmp_path / "clip.rrd"
