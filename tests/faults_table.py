@@ -69,3 +69,17 @@ def viz_env() -> dict[str, str]:
     env.pop("KITTI_ROOT", None)
     env["PYTHONPATH"] = f"{REPO}{os.pathsep}{env.get('PYTHONPATH', '')}"
     return env
+
+
+def break_tracker_at(monkeypatch, frame_index: int) -> None:
+    """A bug in the tracker: Frontend.track raises ValueError("injected tracker bug") at that frame."""
+    from plvo.tracking.frontend import Frontend
+
+    real = Frontend.track
+
+    def track(self, frame):
+        if frame.index == frame_index:
+            raise ValueError("injected tracker bug")
+        return real(self, frame)
+
+    monkeypatch.setattr(Frontend, "track", track)

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import xxhash
-from faults_table import fault
+from faults_table import break_tracker_at, fault
 
 from plvo.data.registry import open_dataset
 from plvo.errors import RecordingError
@@ -131,23 +131,14 @@ def test_a_failed_run_reproduces_on_what_it_wrote(run, tmp_path, monkeypatch):
     (the map's counts of frame 6): rerun on the same data, that used to read "a stage result changed: frame 6:
     map/lines absent -> 63". Only what the recorded run wrote is compared now."""
     row = fault("reproduce-partial")
-    from plvo.tracking.frontend import Frontend
-
     root, _ = run
-    real = Frontend.track
-
-    def track(self, frame):
-        if frame.index == 7:
-            raise ValueError("injected tracker bug")
-        return real(self, frame)
-
-    monkeypatch.setattr(Frontend, "track", track)
+    break_tracker_at(monkeypatch, 7)
     cfg = tmp_path / "det.toml"
     cfg.write_text('[backend]\nconcurrent = false\nexecutor = "thread"\n')
     rrd = tmp_path / "failed.rrd"
     assert main_viz(["--root", str(root), "--seq", "00", "--frames", f"0:{N}", "--config", str(cfg), "--no-serve",
                      "--rrd", str(rrd), "--out", str(tmp_path / "out")]) == 1
-    monkeypatch.setattr(Frontend, "track", real)
+    monkeypatch.undo()  # the rerun's tracker is the real one
     report = reproduce(rrd, root)
     assert report.frames == list(range(7)) and report.reproduces, report.lines(0.01, 0.1)
     assert any(row.message in n for n in report.notes), report.notes

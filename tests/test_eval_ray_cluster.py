@@ -41,8 +41,9 @@ FIGURES = ("settings", "sequences", "incomplete", "t_err_pct", "r_err_deg_per_m"
            "short_r_err_deg_per_m", "ate_m", "ate_sim3_m", "final_drift_m", "short_by_length_t_err_pct",
            "path_length_m")
 N_TASKS = 6
-# A guard against a hang, not a figure: with a busy loop on the other core (make test-busy) the node-killing tests took
-# 146-289 s on the AMD EPYC machine (a 3-node cluster on 2 cores), where a 180 s guard cut two of them short.
+# A guard against a hang, not a figure: with a busy loop on each core beside them (harsher than make test-busy's one)
+# the node-killing tests took 146-289 s on the AMD EPYC machine (a 3-node cluster on 2 cores), where a 180 s guard
+# cut two of them short.
 HANG_GUARD_S = 900
 DRIVER = "import sys; from plvo_app.cli import main; sys.exit(main(sys.argv[1:]))"
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from faults_table import fault, one_error_line, viz_env
+from faults_table import break_tracker_at, fault, one_error_line, viz_env
 
 from plvo.eval.kitti_variants import variant
 from plvo_app.rrd_reader import read_rrd
@@ -286,16 +286,7 @@ def test_worker_error_is_one_line(town, tmp_path, capsys, monkeypatch):
 
 def test_unexpected_error_names_the_frame(town, tmp_path, capsys, monkeypatch):
     row = fault("unexpected")
-    from plvo.tracking.frontend import Frontend
-
-    real = Frontend.track
-
-    def track(self, frame):
-        if frame.index == 2:
-            raise ValueError("injected tracker bug")
-        return real(self, frame)
-
-    monkeypatch.setattr(Frontend, "track", track)
+    break_tracker_at(monkeypatch, 2)
     status, err = _viz([*town, "--out", "out"], capsys)
     line = one_error_line(err)
     assert status == row.exit and row.message in line
