@@ -14,6 +14,7 @@ for ever on the reading thread.
 from __future__ import annotations
 
 import collections
+import contextlib
 import queue
 import threading
 import time
@@ -83,7 +84,8 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
         except BaseException as exc:  # noqa: BLE001 - re-raised in the consumer
             # the frame it came from, which the consumer has not reached yet: an error names that frame, not the
             # one being tracked when it surfaces (up to `depth` frames earlier)
-            exc.plvo_frame = frame_number(at[0])  # type: ignore[attr-defined]
+            with contextlib.suppress(AttributeError, TypeError):  # an exception type that takes no attribute
+                exc.plvo_frame = frame_number(at[0])  # type: ignore[attr-defined]
             hand_over(exc)
             return
         hand_over(_END)
