@@ -150,9 +150,8 @@ def run(args: argparse.Namespace) -> int:
         raise OutputError(f"--out {args.out}: is a folder; give the JSON file's name (e.g. {args.out / 'bench.json'})")
     cfg = load_config(args.config)
     dataset, root = _open(args)
-    out = args.out or Path("results") / "bench" / f"{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
-    if args.soak:
-        out = args.out or Path("results") / "bench" / f"soak_{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
+    kind = "soak_" if args.soak else ""
+    out = args.out or Path("results") / "bench" / f"{kind}{dataset.sequence}_{time.strftime('%Y%m%d-%H%M%S')}.json"
     refuse_existing([out], "plvo bench", "choose another --out")  # before the minutes of timing
     machine = machine_info()
     command = shlex.join(sys.argv)

@@ -300,7 +300,7 @@ def _unstart(outs: Outputs, made: list[Path]) -> None:
     files, a thread or process that cannot be made): the files `_start_outputs` wrote and the folders made for
     them are removed, so that no folder says "running" for ever and the same --out can be given again; the one
     line (and for a bug, the log with its traceback: plvo_app.cli) says what happened."""
-    for name in ("config.toml", "run.log", "timings.json"):
+    for name in RESULTS_FILES:
         (outs.out / name).unlink(missing_ok=True)
     remove_made(made)
 
