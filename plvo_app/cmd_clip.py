@@ -34,12 +34,12 @@ def _frame_range(batch: pa.RecordBatch) -> pa.Array | None:
     return batch.column("frame") if "frame" in batch.schema.names else None
 
 
-def _held_window(src: Path, chunks: list, a: int, b: int) -> tuple[int, int]:
+def _held_window(src: Path, chunks: list, batches: list, a: int, b: int) -> tuple[int, int]:
     """The part of frames [a, b) that the recording holds; RecordingError when it holds none of them (a clip of
     nothing, labelled with frames it does not hold, would "reproduce" anything)."""
     lo, hi = None, None
-    for chunk in chunks:
-        frames = None if chunk.is_static else _frame_range(chunk.to_record_batch())
+    for chunk, batch in zip(chunks, batches):
+        frames = None if chunk.is_static else _frame_range(batch)
         if frames is None or len(frames) == 0:
             continue
         f0, f1 = pc.min(frames).as_py(), pc.max(frames).as_py()
@@ -63,13 +63,14 @@ def clip(src: Path, a: int, b: int, out: Path) -> tuple[int, int, int]:
         chunks = list(open_rrd(src).stream())
     except Exception as exc:  # noqa: BLE001 - the bindings raise several types for a bad file
         raise RecordingError(f"{src}: not a readable Rerun recording ({exc})") from None
-    a, b = _held_window(src, chunks, a, b)
+    batches = [chunk.to_record_batch() for chunk in chunks]  # each chunk's table, made once
+    a, b = _held_window(src, chunks, batches, a, b)
     # the last row before `a` of each entity that carries over: (frame, chunk index, row)
     last: dict[str, tuple[int, int, int]] = {}
     for ci, chunk in enumerate(chunks):
         if chunk.is_static or chunk.entity_path.startswith(NO_CARRY):
             continue
-        frames = _frame_range(chunk.to_record_batch())
+        frames = _frame_range(batches[ci])
         if frames is None:
             continue
         for row, f in enumerate(frames.to_pylist()):
@@ -79,7 +80,7 @@ def clip(src: Path, a: int, b: int, out: Path) -> tuple[int, int, int]:
     kept: list[rr.chunk.Chunk] = []
     n_rows = 0
     for ci, chunk in enumerate(chunks):
-        batch = chunk.to_record_batch()
+        batch = batches[ci]
         frames = _frame_range(batch)
         if chunk.is_static or frames is None:
             kept.append(chunk)
