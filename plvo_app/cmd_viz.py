@@ -3,8 +3,10 @@
 With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
 $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
 results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
-timestamps under --format tum; written only when the run completed), config.toml (the resolved config) and
-timings.json. --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
+timestamps under --format tum; written only when the run completed), truth.txt (the data's ground truth of the same
+frames, alike, where it has one), summary.json (how the run ended, its speed and, with truth, its accuracy: also
+the terminal's last lines), config.toml (the resolved config) and timings.json; results/latest links the newest.
+--root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
 Ctrl-C, SIGTERM or SIGHUP (a closed terminal) stops the run, closes the recording (readable, stamped "interrupted")
 and marks timings.json likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half
 its frames is marked "failed" with its reason and says so on one line. Output nobody reads any more (a closed
@@ -48,6 +50,7 @@ from plvo_app.run_outputs import (
     tracked_summary,
     write_json,
 )
+from plvo_app.run_summary import SUMMARY_FILE, point_latest, summary_lines
 from plvo_app.source_args import add_source_arguments, source_options
 
 log = logging.getLogger(__name__)
@@ -199,7 +202,8 @@ def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
         raise OutputError(f"{candidate}: cannot make the results folder ({exc.strerror or exc})") from None
 
 
-RESULTS_FILES = ("poses.txt", "timings.json", "config.toml", "run.log")  # what a run writes in its results folder
+# what a run writes in its results folder
+RESULTS_FILES = ("poses.txt", "truth.txt", "summary.json", "timings.json", "config.toml", "run.log")
 
 
 def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Path]]:
@@ -258,13 +262,39 @@ def offset_line(summary: dict) -> str:
             f"after the images; run again with --time-offset {found['offset_s']:.3f}")
 
 
-def _write_poses(out: Path, system, dataset, fmt: str = "kitti") -> None:
+def _write_poses(out: Path, system, dataset, fmt: str = "kitti"):
+    """poses.txt, and truth.txt beside it where the data has ground truth -> (poses, truth or None), cam0."""
     from plvo.data.trajectory import write_poses
+    from plvo_app.run_summary import TRUTH_FILE, truth_cam0
 
-    try:
-        write_poses(out / "poses.txt", system.poses_cam0(dataset.frame_indices), dataset.times, fmt)
-    except OSError as exc:
-        raise RunFailed(f"{out / 'poses.txt'}: cannot write the results ({exc.strerror or exc})") from None
+    poses, truth = system.poses_cam0(dataset.frame_indices), truth_cam0(dataset)
+    for name, what in (("poses.txt", poses), (TRUTH_FILE, truth)):
+        if what is None:
+            continue
+        try:
+            write_poses(out / name, what, dataset.times, fmt)
+        except OSError as exc:
+            raise RunFailed(f"{out / name}: cannot write the results ({exc.strerror or exc})") from None
+    return poses, truth
+
+
+def _write_summary(outs: Outputs, system, dataset, status: str, reason: str, fps: float, fmt: str,
+                   scored) -> dict:
+    """summary.json: how the run ended, how fast, and with truth how accurate (plvo_app.run_summary)."""
+    from plvo_app.run_summary import SUMMARY_FILE, TRUTH_FILE, accuracy, build_summary
+
+    figures = None
+    if scored is not None and scored[1] is not None:
+        figures = accuracy(scored[1], scored[0])
+    tracked, _ = tracked_summary(system.frames_done, system.n_lost)
+    summary = build_summary(
+        run=outs.run, sequence=dataset.sequence, status=status, reason=reason, frame_indices=dataset.frame_indices,
+        frames_done=system.frames_done, frames_tracked=tracked, fps=fps,
+        poses_file=outs.out / "poses.txt" if scored is not None else None, pose_format=fmt,
+        truth_source=getattr(dataset, "truth_source", None),
+        truth_file=outs.out / TRUTH_FILE if figures is not None else None, figures=figures)
+    write_json(outs.out / SUMMARY_FILE, summary)
+    return summary
 
 
 def _run_frames(system, dataset, at: list[int]) -> float:
@@ -383,13 +413,17 @@ def run(args: argparse.Namespace) -> int:
         if status == "interrupted":
             print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({reason}); keeping what was "
                   "recorded", file=sys.stderr)
-        status, reason, error = _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog,
-                                        args.format)
+        status, reason, error, summary = _finish(system, recorders, outs, dataset, status, reason, error, fps,
+                                                 runlog, args.format)
+        latest = point_latest(outs.out) if args.out is None and summary else None
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
         if error is None and status in ("complete", DEGRADED):
-            tracked, share = tracked_summary(system.frames_done, system.n_lost)
-            print(f"{status}: {system.frames_done} frames, {tracked} tracked ({share:.0%}){trust_line(system)}",
-                  file=sys.stderr)
+            for line in summary_lines(summary):
+                print(line, file=sys.stderr)
+            print(f"summary:   {(latest or outs.out) / SUMMARY_FILE}", file=sys.stderr)
+            tracked, share = tracked_summary(system.frames_done, system.n_lost)  # the last line: how it ended
+            print(f"{status}: {system.frames_done} frames at {fps:.1f} frames/s, {tracked} tracked ({share:.0%})"
+                  f"{trust_line(system)}", file=sys.stderr)
             exit_code = DEGRADED_EXIT if status == DEGRADED else exit_code
             if viewer is not None and not held.seen:
                 held.what = None
@@ -419,25 +453,30 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
             # the trajectory is not whole: some frames hold the motion model's guess, neither sensor's
             status, reason = DEGRADED, (f"{system.n_lost} of {system.frames_done} frames lost: neither the camera nor "
                                         "the lidar placed them, their poses are the motion model's guess")
+    scored = None  # (poses, truth or None) once poses.txt is written
     if status in ("complete", DEGRADED) and error is None:
         try:
-            _write_poses(outs.out, system, dataset, fmt)
+            scored = _write_poses(outs.out, system, dataset, fmt)
         except PlvoError as exc:
             error, reason = exc, str(exc)
     if error is not None:
         status = "failed"
+        scored = None
     try:
         if recorders:
             recorders[0].set_status(status, system.frames_done)
         system.close()
     except PlvoError as exc:  # the recording's last write failed
         if error is None:
-            status, reason, error = "failed", str(exc), exc
+            status, reason, error, scored = "failed", str(exc), exc, None
             (outs.out / "poses.txt").unlink(missing_ok=True)
+            (outs.out / "truth.txt").unlink(missing_ok=True)
+    summary: dict = {}
     try:
         write_json(outs.out / "timings.json", _timings(system, status, reason, fps, len(dataset)))
+        summary = _write_summary(outs, system, dataset, status, reason, fps, fmt, scored)
     except PlvoError as exc:
         error = error or exc
         log.error("%s", exc)
     runlog.close()
-    return status, reason, error
+    return status, reason, error, summary

@@ -124,6 +124,37 @@ def test_poses_written_and_close_to_ground_truth(kitti_run, kitti_root):
     assert "frame/s" in proc.stderr or "s/frame" in proc.stderr  # the progress bar
 
 
+def test_summary_scores_the_run_as_eval_metric_does(kitti_run, kitti_root):
+    """The end of a run with truth: summary.json and the terminal's last lines hold the figures `plvo eval metric`
+    gives for poses.txt against the sequence's own truth file cut to the frames run; truth.txt is that cut."""
+    from plvo.data.trajectory import read_kitti_poses
+    from plvo.eval.kitti_metric import evaluate_sequence
+
+    cwd, proc, _, out = kitti_run
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "complete" and summary["frame_indices"] == FRAMES
+    assert summary["truth_source"] == str(kitti_root / "poses" / "04.txt") and summary["truth"] == "truth.txt"
+    whole = read_kitti_poses(kitti_root / "poses" / "04.txt")[FRAMES]  # 04's camera is cam0
+    truth = read_kitti_poses(out / "truth.txt")
+    np.testing.assert_allclose(truth, np.linalg.inv(whole[0]) @ whole, atol=1e-8)
+    ev = evaluate_sequence(whole, read_kitti_poses(out / "poses.txt"))
+    acc = summary["accuracy"]
+    assert acc["ate_se3_m"] == pytest.approx(ev.ate_se3.rmse_m, abs=1e-4) and acc["ate_se3_m"] > 0
+    assert acc["ate_sim3_m"] == pytest.approx(ev.ate_sim3.rmse_m, abs=1e-4)
+    for e in ev.short.per_length:  # 7 frames (~9 m) hold no 10 m segment: no figure, null in the JSON
+        got = acc["relative"][f"{e.length_m:g}m"]
+        assert got["segments"] == e.n_segments and (
+            got["t_err_pct"] is None if np.isnan(e.t_err_pct) else got["t_err_pct"] == pytest.approx(e.t_err_pct))
+    assert acc["devkit"] is None  # 7 frames hold no 100 m segment, and it says so
+    assert summary["frames_per_second"] > 0 and summary["tracked_share"] == 1.0
+    last = proc.stderr.splitlines()[-7:]
+    assert f"ATE {acc['ate_se3_m']:.3f} m after SE(3)" in "\n".join(last), last
+    assert any(line.startswith("accuracy against the truth (") for line in last)
+    assert "no figure (the path holds no 100 m segment)" in proc.stderr
+    assert (cwd / "results" / "latest").resolve() == out.resolve()  # the newest run's folder
+    assert last[-2] == "summary:   results/latest/summary.json" and last[-1].startswith("complete: 7 frames at ")
+
+
 def test_second_run_never_overwrites(kitti_run, monkeypatch):
     """Two runs started in the same second get distinct recordings and results folders (in-process: the naming)."""
     import argparse
@@ -181,8 +212,11 @@ def test_ctrl_c_keeps_a_readable_recording(kitti_root, tmp_path):
     timings = json.loads((tmp_path / "out" / "timings.json").read_text())
     assert timings["status"] == "interrupted" and timings["frames_done"] == done
     assert not (tmp_path / "out" / "poses.txt").exists()
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())  # says how it ended, scores nothing
+    assert summary["status"] == "interrupted" and summary["accuracy"] is None and summary["frames_done"] == done
+    assert not (tmp_path / "out" / "truth.txt").exists() and not (tmp_path / "results").exists()
     assert not list(tmp_path.rglob("*.part"))  # no half-written file left behind
-    assert "interrupted after" in err
+    assert "interrupted after" in err and "ATE" not in err
 
 
 @pytest.mark.parametrize("args, message", [

@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -260,7 +261,7 @@ def test_run_that_tracked_nothing_is_failed(no_lidar, tmp_path, capsys, monkeypa
 def test_complete_run_says_how_much_was_tracked(town, tmp_path, capsys):
     status, err = _viz([*town, "--out", "out"], capsys)
     assert status == 0, err
-    assert err.strip().splitlines()[-1] == "complete: 6 frames, 6 tracked (100%)"
+    assert re.fullmatch(r"complete: 6 frames at [0-9.]+ frames/s, 6 tracked \(100%\)", err.strip().splitlines()[-1])
     timings = _timings(tmp_path / "out")
     assert timings["status"] == "complete" and timings["tracked_share"] == 1.0
     assert (tmp_path / "out" / "poses.txt").stat().st_mode & 0o777 == 0o644

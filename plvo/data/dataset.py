@@ -60,6 +60,7 @@ class SelectedFrames:
     _frames: tuple[int, ...]
     _times: np.ndarray
     _gt: np.ndarray | None
+    truth_source: str | None = None  # where the ground truth was read (a file or folder), for the run's summary
 
     def __len__(self) -> int:
         return len(self._frames)

@@ -122,6 +122,7 @@ class FolderDataset(SelectedFrames):
         gt = _read_gt(poses_file, all_times, times_file.is_file()) if poses_file.is_file() else None
         sel = list(self._frames)
         self._times, self._gt = all_times[sel], None if gt is None else gt[sel]
+        self.truth_source = None if gt is None else str(poses_file)
         log.info("folder %s: %d frames, %dx%d%s", self.root, len(sel), self.calib.width, self.calib.height,
                  ", with ground truth" if gt is not None else "")
 

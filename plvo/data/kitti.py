@@ -355,6 +355,7 @@ class KittiOdometry(_KittiSequence):
         if not pose_file.is_file() and (seq_dir / "poses.txt").is_file():  # SemanticKITTI keeps it in the sequence
             pose_file = seq_dir / "poses.txt"
         gt = _odometry_gt(pose_file, selected, calib.T_cam0_cam)
+        self.truth_source = None if gt is None else str(pose_file)
         self._init_frames(sequence, calib, selected, images, scans, times[list(selected)], gt, camera)
 
 
@@ -460,6 +461,7 @@ class KittiRaw(_KittiSequence):
                                   f"{root / date} calib_*.txt")
         forward = _read_stamps(drive_dir / "velodyne_points" / "timestamps.txt", (0, *selected))
         gt = _raw_gt(data, calib.T_cam0_cam, _read_stamps(stamps, records), forward)
+        self.truth_source = f"{oxts_dir.parent} (GPS/INS)"
         self._init_frames(f"{date}_drive_{number}", calib, selected, images, scans, times, gt, camera)
 
     def _scan_times(self, i: int, scan: np.ndarray) -> np.ndarray:
