@@ -73,3 +73,25 @@ def test_cache_is_complete_or_absent(tmp_path, monkeypatch):
     assert (root / "poses" / "00.txt").is_file()
     again = cached_sequence_root(settings, progress=lambda d, t: calls.append(d))
     assert again == root and calls == [1, 2]  # served from the cache, nothing rendered
+
+
+def test_cache_holds_the_frames_asked_for_and_grows_to_the_same_bits(tmp_path, monkeypatch):
+    """A run of the first frames waits for those only; a later run wanting more extends the cache in place, to the
+    files one whole generation writes; what an interrupted extension left is tidied away before the next."""
+    from plvo.data.synth.cache import cached_frames
+
+    monkeypatch.setenv("PLVO_CACHE", str(tmp_path / "cache"))
+    settings = SynthSettings(n_frames=4, seed=7)
+    calls: list[tuple[int, int]] = []
+    root = cached_sequence_root(settings, progress=lambda d, t: calls.append((d, t)), stop=2)
+    assert calls[-1] == (2, 2) and cached_frames(settings) == 2
+    assert sorted(p.name for p in (root / "sequences" / "00" / "image_0").iterdir()) == ["000000.png", "000001.png"]
+    # an extension cut off after frame 2's scan: a scan without its image and a hidden half-written file
+    seq = root / "sequences" / "00"
+    (seq / "velodyne" / "000002.bin").write_bytes(b"cut")
+    (seq / "image_0" / ".000002.png.1.tmp").write_bytes(b"cut")
+    calls.clear()
+    assert cached_sequence_root(settings, progress=lambda d, t: calls.append((d, t))) == root
+    assert calls[-1] == (2, 2) and cached_frames(settings) == 4  # frames 2 and 3 only
+    whole = generate_sequence(tmp_path / "whole", "00", n_frames=4, seed=7)
+    assert _files(root) == _files(whole)

@@ -161,8 +161,11 @@ def _write_ground_truth(gt_dir: Path, settings: SynthSettings, traj: Trajectory,
 
 
 def _render_frames(stage_seq: Path, settings: SynthSettings, traj: Trajectory, renderer: Renderer, gains,
-                   progress: Callable[[int, int], None] | None) -> None:
+                   progress: Callable[[int, int], None] | None, frames: range | None = None) -> None:
+    """Render `frames` (all by default) into the sequence folder; progress(done, total) counts over them."""
     T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
+    frames = range(settings.n_frames) if frames is None else frames
+    total = len(frames)
 
     def frame(i: int) -> None:
         rng = np.random.default_rng(np.random.SeedSequence([settings.seed, 5, i]))
@@ -174,25 +177,48 @@ def _render_frames(stage_seq: Path, settings: SynthSettings, traj: Trajectory, r
     # other's ray cast keeps both cores busy. Each frame has its own random stream, so the order does not matter.
     with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
         pending = []
-        for i in range(settings.n_frames):
+        for k, i in enumerate(frames):
             pending.append(pool.submit(frame, i))
             if len(pending) > RENDER_THREADS:
                 pending.pop(0).result()
                 if progress is not None:
-                    progress(i + 1 - RENDER_THREADS, settings.n_frames)
+                    progress(k + 1 - RENDER_THREADS, total)
         for k, job in enumerate(pending):
             job.result()
             if progress is not None:
-                progress(settings.n_frames - len(pending) + k + 1, settings.n_frames)
+                progress(total - len(pending) + k + 1, total)
 
 
 def _write_frame(seq_dir: Path, i: int, image: np.ndarray, scan: np.ndarray, depth: np.ndarray | None) -> None:
+    """A frame's files, each written whole under a hidden name and renamed, the image last: a frame is on disk
+    when its image is (a sequence extended in place, plvo.data.synth.cache, is never read half-written)."""
     name = f"{i:06d}"
-    if not cv2.imwrite(str(seq_dir / "image_0" / f"{name}.png"), image):
-        raise SynthError(f"{seq_dir / 'image_0' / name}.png: cannot write the image")
-    scan.astype(np.float32).tofile(seq_dir / "velodyne" / f"{name}.bin")
     if depth is not None:
-        np.save(seq_dir / "gt" / "depth" / f"{name}.npy", depth.astype(np.float32))
+        _replace_with(seq_dir / "gt" / "depth" / f"{name}.npy", lambda f: np.save(f, depth.astype(np.float32)))
+    _replace_with(seq_dir / "velodyne" / f"{name}.bin", lambda f: f.write(scan.astype(np.float32).tobytes()))
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise SynthError(f"{seq_dir / 'image_0' / name}.png: cannot encode the image")
+    _replace_with(seq_dir / "image_0" / f"{name}.png", lambda f: f.write(png.tobytes()))
+
+
+def _replace_with(path: Path, write: Callable) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise SynthError(f"{path}: cannot write ({exc.strerror or exc})") from None
+
+
+def rendered_frames(seq_dir: Path) -> int:
+    """How many frames, from frame 0 on, a sequence folder holds whole (image and scan)."""
+    n = 0
+    while (seq_dir / "image_0" / f"{n:06d}.png").is_file() and (seq_dir / "velodyne" / f"{n:06d}.bin").is_file():
+        n += 1
+    return n
 
 
 def check_sequence_name(sequence: str) -> None:
@@ -218,25 +244,45 @@ def check_request(out_root: Path, sequence: str, settings: SynthSettings, overwr
     check_target(out_root, sequence, overwrite)
 
 
-def write_sequence(root: Path, sequence: str, settings: SynthSettings,
-                   progress: Callable[[int, int], None] | None = None) -> None:
-    """Render every file of one sequence into `root` (a fresh directory, not yet visible to readers)."""
-    traj = plan_trajectory(settings)
-    seq_dir = root / "sequences" / sequence
-    for sub in ("image_0", "velodyne", "gt/depth" if settings.write_depth else "gt"):
-        (seq_dir / sub).mkdir(parents=True, exist_ok=True)
-    (root / "poses").mkdir(parents=True, exist_ok=True)
-    _write_text_files(seq_dir, root / "poses" / f"{sequence}.txt", traj)
+def _town_of(settings: SynthSettings, traj: Trajectory):
     T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
     lane = paths.LanePath(traj.route)
     s_end = float(traj.s[-1]) + ROUTE_LOOKAHEAD_M
     samples = lane.sample(np.arange(0.0, min(s_end, lane.length), 5.0))[:, :2]
     town = build_town(paths.make_grid(settings.seed), np.vstack([samples, T_town_cam[:, :2, 3]]), settings.seed)
     log.info("town: %d triangles, %d edges", len(town.triangles), len(town.edges))
+    return town
+
+
+def write_sequence(root: Path, sequence: str, settings: SynthSettings,
+                   progress: Callable[[int, int], None] | None = None, stop: int | None = None) -> None:
+    """Render one sequence into `root` (a fresh directory, not yet visible to readers): every text file and the
+    ground truth of all its frames, the images and scans of frames 0..stop-1 (all by default; the rest can be
+    added later by `extend_sequence`, to the same bits)."""
+    traj = plan_trajectory(settings)
+    seq_dir = root / "sequences" / sequence
+    for sub in ("image_0", "velodyne", "gt/depth" if settings.write_depth else "gt"):
+        (seq_dir / sub).mkdir(parents=True, exist_ok=True)
+    (root / "poses").mkdir(parents=True, exist_ok=True)
+    _write_text_files(seq_dir, root / "poses" / f"{sequence}.txt", traj)
+    town = _town_of(settings, traj)
     gains = exposure_gains(settings)
     _write_ground_truth(seq_dir / "gt", settings, traj, town, gains)
     renderer = Renderer(town, build_atlas(settings.seed), settings.seed)
-    _render_frames(seq_dir, settings, traj, renderer, gains, progress)
+    _render_frames(seq_dir, settings, traj, renderer, gains, progress, range(settings.n_frames if stop is None
+                                                                             else min(stop, settings.n_frames)))
+
+
+def extend_sequence(root: Path, sequence: str, settings: SynthSettings, stop: int,
+                    progress: Callable[[int, int], None] | None = None) -> None:
+    """Render frames up to stop-1 that a sequence written by `write_sequence(..., stop=...)` lacks, in place."""
+    seq_dir = root / "sequences" / sequence
+    start, stop = rendered_frames(seq_dir), min(stop, settings.n_frames)
+    if start >= stop:
+        return
+    traj = plan_trajectory(settings)
+    renderer = Renderer(_town_of(settings, traj), build_atlas(settings.seed), settings.seed)
+    _render_frames(seq_dir, settings, traj, renderer, exposure_gains(settings), progress, range(start, stop))
 
 
 def _pid_alive(pid: int) -> bool:
