@@ -25,7 +25,7 @@ def truth_cam0(dataset) -> Any:
     """(N,4,4) ground truth of cam0 over the frames run, first frame at identity (as poses.txt), or None."""
     import numpy as np
 
-    gt = dataset.gt_T_world_cam
+    gt = getattr(dataset, "gt_T_world_cam", None)  # the Dataset protocol has it; a bare source may not
     if gt is None:
         return None
     cam0 = gt @ np.linalg.inv(dataset.calib.T_cam0_cam)
