@@ -1,7 +1,9 @@
 """The README's real-clip figures are what the commands its result files give produce: each clip run again with
 `plvo eval run` as docs/results/real_clips_0af3d75/README.md says, every figure of the README's rows compared to two
-decimals (plvo's figures on the real frames are the same to the last bit on the project's machines; the peers' within
-the last shown digit). Reads ../shared/data and skips with a reason where the clips are absent."""
+decimals, within the last shown digit or 1.5 % of the figure, whichever is larger: the last bits of the floating
+point kernels move them (on AVX2 kernels, `make test-bits`, the raw drive's 40 m figure for plvo came out 2.59 where
+this machine's AVX-512 ones give the README's 2.57: 0.8 %, the largest change seen). Reads ../shared/data and skips
+with a reason where the clips are absent."""
 
 from __future__ import annotations
 
@@ -56,4 +58,4 @@ def test_the_readmes_real_clip_figures_come_from_its_command(prefix, tmp_path, c
     for column, setting in enumerate(("full", "kiss", "kiss_slam")):
         plain, aligned = _figures(out / "runs" / setting / seq / "result.json")
         for shown, measured in ((devkit_row[column], plain), (aligned_row[column], aligned)):
-            assert shown == pytest.approx([round(v, 2) for v in measured], abs=0.0101), (prefix, setting)
+            assert shown == pytest.approx([round(v, 2) for v in measured], rel=0.015, abs=0.0101), (prefix, setting)
