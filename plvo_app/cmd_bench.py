@@ -29,17 +29,22 @@ import tempfile
 import time
 from importlib import metadata
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from plvo import provenance
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_dict, load_config
 from plvo.errors import DatasetError, OutputError
-from plvo.eval.bench import STAGE_GROUPS, parse_stages, run_bench
-from plvo.recording import RunInfo
 from plvo_app.run_outputs import refuse_existing
 from plvo_app.source_args import add_source_arguments, source_options
 
+if TYPE_CHECKING:
+    from plvo.recording import RunInfo
+
+# plvo.eval.bench (numpy, the pipeline) is imported when the bench runs: `plvo bench --help` answers at once
 log = logging.getLogger(__name__)
+# plvo.eval.bench.STAGE_GROUPS, named here for --help (tests/test_cli_terminal.py checks that the two agree)
+STAGE_GROUPS = ("features", "matching", "depth", "registration", "backend", "loop", "system")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_KITTI = REPO.parent / "shared" / "data" / "kitti"
@@ -142,7 +147,15 @@ class Reopen:
         return _open(self.args)[0]
 
 
+def run_bench(*args, **kwargs) -> dict:
+    """plvo.eval.bench.run_bench, imported when called (a name of this module, as it was: a test replaces it)."""
+    from plvo.eval.bench import run_bench as run_bench_
+
+    return run_bench_(*args, **kwargs)
+
+
 def run(args: argparse.Namespace) -> int:
+    from plvo.eval.bench import parse_stages
     from plvo_app.cmd_viz import run_info
 
     stages = parse_stages(args.stages)  # bad arguments fail before any work
@@ -183,10 +196,12 @@ def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, 
 
     from plvo.eval.soak import run_soak
     from plvo_app.rerun_recorder import RerunRecorder
+    from plvo_app.terminal import progress_enabled
 
     with tempfile.TemporaryDirectory(prefix="plvo-soak-") as tmp:
         rrd = Path(tmp) / "soak.rrd"
-        with tqdm(total=len(dataset), unit="frame", desc=f"soak {dataset.sequence}", dynamic_ncols=True) as bar:
+        with tqdm(total=len(dataset), unit="frame", desc=f"soak {dataset.sequence}", dynamic_ncols=True,
+                  disable=not progress_enabled()) as bar:
             report = run_soak(dataset, cfg, RerunRecorder(rrd), info, rrd, progress=bar.update)
     machine["load_avg_end"] = [round(x, 2) for x in os.getloadavg()]
     report = {"command_line": command, "git_revision": info.git_revision, "versions": versions(),

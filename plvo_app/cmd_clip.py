@@ -11,16 +11,15 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-
-import pyarrow as pa
-import pyarrow.compute as pc
-import rerun as rr
+from typing import TYPE_CHECKING
 
 from plvo.errors import RecordingError
 from plvo_app.recording_levels import parse_window
-from plvo_app.rrd_compact import write_chunks
-from plvo_app.rrd_reader import open_rrd
 
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+# Rerun and pyarrow are imported by the functions that read and write recordings: `plvo clip --help` answers at once.
 NO_CARRY = ("/metrics", "/log", "/inputs")  # a value of these belongs to its frame, not to the frames after it
 
 
@@ -37,6 +36,8 @@ def _frame_range(batch: pa.RecordBatch) -> pa.Array | None:
 def _held_window(src: Path, chunks: list, batches: list, a: int, b: int) -> tuple[int, int]:
     """The part of frames [a, b) that the recording holds; RecordingError when it holds none of them (a clip of
     nothing, labelled with frames it does not hold, would "reproduce" anything)."""
+    import pyarrow.compute as pc
+
     lo, hi = None, None
     for chunk, batch in zip(chunks, batches):
         frames = None if chunk.is_static else _frame_range(batch)
@@ -55,6 +56,13 @@ def _held_window(src: Path, chunks: list, batches: list, a: int, b: int) -> tupl
 def clip(src: Path, a: int, b: int, out: Path) -> tuple[int, int, int]:
     """Write frames [a, b) of `src` (and its static data) to `out`, the window cut to the frames the recording
     holds -> (rows kept, the window's first frame, its end)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import rerun as rr
+
+    from plvo_app.rrd_compact import write_chunks
+    from plvo_app.rrd_reader import open_rrd
+
     if not src.is_file():
         raise RecordingError(f"{src}: no such recording file")
     if out.exists():

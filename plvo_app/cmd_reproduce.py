@@ -14,7 +14,9 @@ import sys
 from pathlib import Path
 
 from plvo.errors import RecordingError
-from plvo_app.reproduce import parse_set, reproduce
+
+# plvo_app.reproduce (the pipeline, the recording's reader) is imported by `run`: `plvo reproduce --help` answers at
+# once.
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,6 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from plvo_app.reproduce import parse_set, reproduce
+
     if args.keep is not None and args.keep.exists():
         raise RecordingError(f"{args.keep}: already exists; plvo reproduce never overwrites a file")
     report = reproduce(args.file, args.root, parse_set(args.set), args.tol_m, args.tol_deg, args.keep)

@@ -20,15 +20,13 @@ import logging
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
-from plvo.data.synth import SynthSettings, generate_sequence
-from plvo.data.synth.generate import check_request
-from plvo.data.synth.twin.lidars import LIDAR_MODELS
 from plvo.errors import SynthError
-from plvo_app.twin_progress import twin_progress
 
+# The generators (numpy, open3d, the renderer) and tqdm are imported when a sequence is made: `plvo synth --help`
+# answers at once.
 log = logging.getLogger(__name__)
+# plvo.data.synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/test_cli_terminal.py checks that they agree)
+LIDAR_NAMES = ("hdl64", "hdl32", "vlp16", "os128")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     twin.add_argument("--kitti-poses", metavar="DIR", help="folder of KITTI pose files NN.txt (for --twins)")
     twin.add_argument("--traffic", type=int, default=None, metavar="N",
                       help="moving cars in a twin (default: one per 60 m of path; 0: none)")
-    twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_MODELS)}")
+    twin.add_argument("--lidar", default="hdl64", help=f"lidar model of a twin: {', '.join(LIDAR_NAMES)}")
     twin.add_argument("--ideal", action="store_true",
                       help="ideal sensors: no camera, lidar or rig imperfections, KITTI 00-02's calibration for "
                            "every twin and raw sweeps (the twins as written before the realism existed)")
@@ -86,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
         return run_twins(args)
     if args.ideal:
         raise SynthError("--ideal: for twins (--follow, --twins, --raw-drive); the town's sensors are ideal already")
+    from tqdm import tqdm
+
+    from plvo.data.synth import SynthSettings, generate_sequence
+    from plvo.data.synth.generate import check_request
+
     args.frames = _town_frames(args.frames)
     settings = SynthSettings(args.frames, args.seed, args.speed, args.loop, args.stops, args.exposure_change,
                              args.depth)
@@ -116,6 +119,7 @@ def run_twins(args: argparse.Namespace) -> int:
     """--follow (one twin as --seq) or --twins (several, in parallel): generate, report frames a second."""
     from plvo.data.synth.twin.batch import TwinJob, ensure_twins, parse_twins, twin_jobs
     from plvo.data.synth.twin.generate import TwinSettings
+    from plvo_app.twin_progress import twin_progress
 
     if args.follow and args.twins:
         raise SynthError("--follow and --twins: give one (--twins follows --kitti-poses/NN.txt)")
@@ -151,6 +155,8 @@ def _realism(args: argparse.Namespace):
 
 def run_raw_twin(args: argparse.Namespace) -> int:
     """--raw-drive ROOT --seq DATE_drive_NNNN: the drive's twin in KITTI's raw layout under --out."""
+    from tqdm import tqdm
+
     from plvo.data.synth.twin.generate import TwinSettings
     from plvo.data.synth.twin.raw_drive import check_raw_request, generate_raw_twin, parse_drive_name
 

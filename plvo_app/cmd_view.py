@@ -1,7 +1,7 @@
 """Inspect a saved .rrd recording in the viser web viewer (or the Rerun web viewer) without rerunning the pipeline."""
 
-# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
-# imported inside the functions that use them: `plvo --help` imports every command module.
+# The viewers (rerun, viser, and numpy and OpenCV by plvo_app.scene_common) are imported inside the functions that
+# use them: `plvo view --help` answers at once.
 from __future__ import annotations
 
 import argparse
@@ -10,7 +10,6 @@ from pathlib import Path
 
 from plvo.errors import RecordingError
 from plvo_app.guards import check_port
-from plvo_app.scene_common import wait_for_interrupt
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,6 +38,7 @@ def serve_rerun_web(path: Path, web_port: int) -> int:
     import rerun as rr
 
     from plvo_app.rrd_blueprint import blueprint
+    from plvo_app.scene_common import wait_for_interrupt
 
     if not path.is_file():
         raise RecordingError(f"{path}: no such recording file")

@@ -52,6 +52,7 @@ from plvo_app.run_outputs import (
 )
 from plvo_app.run_summary import SUMMARY_FILE, point_latest, summary_lines
 from plvo_app.source_args import add_source_arguments, source_options
+from plvo_app.terminal import progress_enabled
 
 log = logging.getLogger(__name__)
 
@@ -133,16 +134,23 @@ def _resolve_config(args: argparse.Namespace) -> SystemConfig:
 def _open(args: argparse.Namespace):
     """(dataset, run label, identity): the dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town
     ("town00") when no dataset is given; identity says where it came from (recorded for plvo reproduce)."""
-    from plvo.data.registry import ROOT_ENV, open_dataset, parse_frames
+    from plvo.data.registry import ROOT_ENV, only_sequence, open_dataset, parse_frames
     from plvo_app.run_identity import dataset_identity
 
     frames = parse_frames(args.frames) if args.frames else None
     if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
-        root, seq = _synthetic_town()
+        root, seq = _synthetic_town(frames)
         dataset = open_dataset(root, seq, frames)
         return dataset, f"town{seq}", dataset_identity(dataset, root, args.frames, synthetic=True)
-    dataset = open_dataset(args.root, args.seq or "00", frames, camera=args.camera, options=source_options(args))
     root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
+    seq = args.seq
+    # a bag or plain folder needs no --seq; a dataset root's only sequence runs, several are listed (exit 2)
+    if seq is None and root is not None:
+        what = "--root" if args.root is not None else f"${ROOT_ENV}"
+        seq = only_sequence(root, what)
+        if seq is not None:
+            print(f"{what} {root}: running {seq}, the only sequence there", file=sys.stderr)
+    dataset = open_dataset(root, seq, frames, camera=args.camera, options=source_options(args))
     return dataset, dataset.sequence, dataset_identity(dataset, root, args.frames, synthetic=False)
 
 
@@ -156,31 +164,39 @@ def recorder_options(args: argparse.Namespace):
     return RerunOptions(detail=detail, embed_inputs=embed)
 
 
-def _synthetic_town() -> tuple[Path, str]:
-    """(root, sequence) of the default synthetic town, generated once into the cache (with a progress bar)."""
+def _synthetic_town(frames: slice | None = None) -> tuple[Path, str]:
+    """(root, sequence) of the default synthetic town holding the frames asked for (all by default): generated into
+    the cache as far as needed (with a progress bar), the cache extended when a later run wants more."""
     from plvo.data.registry import ROOT_ENV
 
     try:
         from plvo.data.synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, default_sequence_root
-        from plvo.data.synth.cache import cache_dir, settings_hash
+        from plvo.data.synth.cache import cache_dir, cached_frames, settings_hash
     except ImportError:
         raise DatasetError(f"no dataset: give --root DIR or set ${ROOT_ENV} (the synthetic town is not "
                            "available in this build)") from None
     st = DEFAULT_SETTINGS
+    stop = st.n_frames
+    if frames is not None and frames.stop is not None and frames.stop >= 0 and (frames.step or 1) > 0:
+        stop = min(frames.stop, st.n_frames)
     where = cache_dir() / settings_hash(st, DEFAULT_SEQUENCE)
-    cached = (where / "sequences" / DEFAULT_SEQUENCE / "calib.txt").is_file()
+    have = cached_frames(st, DEFAULT_SEQUENCE)
+    todo = max(0, stop - have)
+    how = (f"cached in {where}" if not todo else
+           f"{'generating' if not have else 'adding'} frames {have}..{stop - 1} (~0.3 s each) in {where}")
     print(f"no --root and no ${ROOT_ENV}: running the synthetic town (sequence {DEFAULT_SEQUENCE}, {st.n_frames} "
-          f"frames at {st.speed_mps:g} m/s{', with a loop' if st.loop else ''}), "
-          f"{'cached in' if cached else 'generated once (a few minutes) into'} {where}", file=sys.stderr)
-    if cached:
-        return Path(default_sequence_root()), DEFAULT_SEQUENCE
+          f"frames at {st.speed_mps:g} m/s{', with a loop' if st.loop else ''}), {how}; its ground truth: "
+          f"{where / 'poses' / (DEFAULT_SEQUENCE + '.txt')}", file=sys.stderr)
+    if not todo:
+        return Path(default_sequence_root(stop=stop)), DEFAULT_SEQUENCE
     from tqdm import tqdm
 
-    with tqdm(total=st.n_frames, unit="frame", desc="synthetic town", dynamic_ncols=True) as bar:
+    with tqdm(total=todo, unit="frame", desc="synthetic town", dynamic_ncols=True,
+              disable=not progress_enabled()) as bar:
         def progress(done: int, total: int) -> None:
             bar.update(done - bar.n)
 
-        return Path(default_sequence_root(progress)), DEFAULT_SEQUENCE
+        return Path(default_sequence_root(progress, stop=stop)), DEFAULT_SEQUENCE
 
 
 def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
@@ -304,7 +320,8 @@ def _run_frames(system, dataset, at: list[int]) -> float:
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True) as bar:
+    with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True,
+              disable=not progress_enabled()) as bar:
         for frame in system.read_ahead(dataset):
             at[0] = frame.index
             system.step(frame)

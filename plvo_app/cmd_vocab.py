@@ -17,17 +17,20 @@ import logging
 import tempfile
 import time
 from pathlib import Path
-
-import cv2
-import numpy as np
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from plvo.atomic import write_text_atomic
 from plvo.config import LineConfig, OrbConfig
 from plvo.errors import DatasetError, PlvoError
-from plvo.loop.vocabulary import Vocabulary
 from plvo_app.run_outputs import refuse_existing
 
+if TYPE_CHECKING:
+    import numpy as np
+
+    from plvo.loop.vocabulary import Vocabulary
+
+# OpenCV, numpy, tqdm and the vocabulary are imported by the functions that train: `plvo vocab --help` answers at
+# once.
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
 
@@ -72,6 +75,8 @@ def _sequence_images(spec: str) -> list[Path]:
 
 def auto_depth(n_desc: int, k: int, max_words: int = 10_000) -> int:
     """Depth giving about 10 training descriptors per word, clamped to 3..6 and to k^depth <= max_words."""
+    import numpy as np
+
     depth = int(np.clip(round(np.log(max(n_desc, 1) / 10.0) / np.log(k)), 3, 6))
     while depth > 1 and k**depth > max_words:
         depth -= 1
@@ -79,6 +84,9 @@ def auto_depth(n_desc: int, k: int, max_words: int = 10_000) -> int:
 
 
 def _extract(sources: dict[str, list[Path]], show: bool):
+    import cv2
+    from tqdm import tqdm
+
     from plvo.features.extract import extract_features
 
     orb, lbd, counts = [], [], {}
@@ -98,6 +106,10 @@ def _extract(sources: dict[str, list[Path]], show: bool):
 
 
 def _train(name: str, descs: list[np.ndarray], args, info: str, show: bool) -> tuple[Vocabulary, float]:
+    from tqdm import tqdm
+
+    from plvo.loop.vocabulary import Vocabulary
+
     n = int(sum(len(d) for d in descs))
     if n == 0:
         raise PlvoError(f"vocab: no {name} descriptors were found in the training images")
@@ -119,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         sources[f"sequence:{spec}"] = _sequence_images(spec)[:: max(1, args.every)]
     with tempfile.TemporaryDirectory(prefix="plvo-vocab-") as tmp:
         if args.synth > 0:
+            from tqdm import tqdm
+
             from plvo.data.synth import generate_sequence
 
             with tqdm(total=args.synth, unit="frame", desc="synthetic town", disable=not show) as bar:

@@ -19,6 +19,7 @@ from typing import Any
 
 from plvo.atomic import write_text_atomic
 from plvo.errors import OutputError, RunFailed
+from plvo_app.terminal import file_level
 
 log = logging.getLogger(__name__)
 
@@ -110,14 +111,22 @@ def remove_made(made: list[Path]) -> None:
 
 
 class RunLog:
-    """The run's log in the results folder (run.log): every INFO message, and tracebacks written only there."""
+    """The run's log in the results folder (run.log): every INFO message (DEBUG too under -vv: plvo_app.terminal),
+    whatever the terminal shows, and tracebacks written only there. While it is open the root logger lets its level
+    through (a root left at logging's default WARNING, as by a program that calls the commands in-process, would
+    keep the INFO lines from it); `close` puts the root's level back."""
 
     def __init__(self, path: Path):
         self.path = path
         self.handler = logging.FileHandler(path, encoding="utf-8", delay=False)
         self.handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-        self.handler.setLevel(logging.INFO)
-        logging.getLogger().addHandler(self.handler)
+        self.handler.setLevel(file_level())
+        root = logging.getLogger()
+        root.addHandler(self.handler)
+        self._root_level: int | None = None
+        if root.getEffectiveLevel() > self.handler.level:
+            self._root_level = root.level
+            root.setLevel(self.handler.level)
         self.crash = logging.getLogger("plvo_app.crash")  # not propagated: the terminal gets one line only
         self.crash.propagate = False
         self.crash.addHandler(self.handler)
@@ -130,7 +139,10 @@ class RunLog:
             pass
 
     def close(self) -> None:
-        logging.getLogger().removeHandler(self.handler)
+        root = logging.getLogger()
+        root.removeHandler(self.handler)
+        if self._root_level is not None and root.level == self.handler.level:  # unless changed meanwhile
+            root.setLevel(self._root_level)
         self.crash.removeHandler(self.handler)
         self.handler.close()
 

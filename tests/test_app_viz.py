@@ -197,7 +197,7 @@ def test_default_recording_name_taken_meanwhile(tmp_path):
 
 
 def test_ctrl_c_keeps_a_readable_recording(kitti_root, tmp_path):
-    cmd = ["--root", str(kitti_root), "--seq", "04", "--no-serve", "--rrd", "cut.rrd", "--out", "out"]
+    cmd = ["--root", str(kitti_root), "--seq", "04", "--no-serve", "--rrd", "cut.rrd", "--out", "out", "-v"]
     p = subprocess.Popen(VIZ + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE, text=True)
     seen = read_stderr_until(p, "frame 3: keyframe")  # a few frames are in
     p.send_signal(signal.SIGINT)
@@ -263,17 +263,18 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
     cmd_viz.add_arguments(parser)
     calls = []
 
-    def fake_generate(progress=None):
-        calls.append(progress)
+    def fake_generate(progress=None, stop=None):
+        calls.append(stop)
         for i in range(1, 4):
-            progress(i, DEFAULT_SETTINGS.n_frames)
+            progress(i, stop)
         return synth_seq
 
     monkeypatch.setattr("plvo.data.synth.default_sequence_root", fake_generate)
     dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
     err = capsys.readouterr().err
-    assert calls and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5
-    assert "no --root and no $KITTI_ROOT: running the synthetic town" in err and "generated once" in err
+    assert calls == [5] and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5  # the frames asked, no more
+    assert "no --root and no $KITTI_ROOT: running the synthetic town" in err and "generating frames 0..4" in err
+    assert f"its ground truth: {tmp_path / 'cache'}" in err
     assert str(tmp_path / "cache") in err and "synthetic town:" in err  # where, and the progress bar
 
     monkeypatch.undo()

@@ -37,7 +37,7 @@ def _check_interrupted(cwd: Path, err: str, reason: str) -> None:
 
 def test_sigterm_is_handled_like_ctrl_c(synth_seq, tmp_path):
     row = fault("sigterm")
-    p = _start(synth_seq, tmp_path, "--no-serve")
+    p = _start(synth_seq, tmp_path, "--no-serve", "-v")  # -v: the INFO lines waited for are shown
     seen = read_stderr_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGTERM)
     err = seen + p.stderr.read()
@@ -49,7 +49,7 @@ def test_sigterm_is_handled_like_ctrl_c(synth_seq, tmp_path):
 def test_sigint_twice_keeps_the_results(synth_seq, tmp_path):
     """The second Ctrl-C arrives while the recording is closed and the results written: it is noted, not obeyed."""
     row = fault("sigint")
-    p = _start(synth_seq, tmp_path, "--no-serve")
+    p = _start(synth_seq, tmp_path, "--no-serve", "-v")  # -v: the INFO lines waited for are shown
     seen = read_stderr_until(p, "frame 3: keyframe")
     p.send_signal(signal.SIGINT)
     seen += read_stderr_until(p, row.message)
@@ -93,7 +93,7 @@ def test_other_ending_signals_are_handled_like_ctrl_c(synth_seq, tmp_path, signu
     Ctrl-\\ (SIGQUIT) used to end the run with no word, its results "running" for ever and the recording without
     its footer: now they take Ctrl-C's path."""
     row = fault("signal-other")
-    p = _start_own_group(synth_seq, tmp_path)
+    p = _start_own_group(synth_seq, tmp_path, "-v")  # -v: the INFO lines waited for are shown
     seen = read_stderr_until(p, "frame 3: keyframe")
     os.killpg(p.pid, signum) if to_group else p.send_signal(signum)
     err = seen + p.stderr.read()
@@ -130,7 +130,7 @@ def test_a_closed_stderr_does_not_end_the_run(synth_seq, tmp_path):
     """`plvo-viz ... 2>&1 | head`: the reader of stderr leaves after the first lines; the run used to die as an
     unexpected error on its next log line. Now what nobody reads is dropped and the run completes."""
     row = fault("stderr-closed")
-    p = _start_own_group(synth_seq, tmp_path, "--frames", "0:8")
+    p = _start_own_group(synth_seq, tmp_path, "--frames", "0:8", "-v")  # -v: the dataset's INFO line is shown
     read_stderr_until(p, "frames (0..")
     p.stderr.close()
     assert p.wait(timeout=300) == row.exit

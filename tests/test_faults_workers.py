@@ -131,7 +131,7 @@ def test_a_stopped_worker_fails_the_run_after_the_bound(name, town, tmp_path, ca
 def test_a_killed_resource_tracker_is_not_noticed(synth_seq, tmp_path):
     """multiprocessing's resource tracker (a process every spawning program has) killed mid-run: the run completes
     and says nothing of it (the workers register no semaphore or shared memory with it)."""
-    p = subprocess.Popen([*VIZ, "--root", str(synth_seq), "--seq", "00", "--no-serve", "--out",
+    p = subprocess.Popen([*VIZ, "-v", "--root", str(synth_seq), "--seq", "00", "--no-serve", "--out",
                           str(tmp_path / "out"), "--rrd", str(tmp_path / "run.rrd")], cwd=tmp_path, env=viz_env(),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -293,7 +293,7 @@ def test_a_registered_edge_without_a_near_view_is_refused_and_logged(monkeypatch
     monkeypatch.setattr(closer, "_local_map", lambda kf_id: np.zeros((0, 3)))
     monkeypatch.setattr(closer_module, "verify_by_registration", lambda q, c, *a, **k: Verification(
         q, c, True, aside, 0, 0, 0, 0, True, 0.9, "scan registration: overlap 0.90", 0.0, "bow"))
-    with caplog.at_level(logging.INFO, logger="plvo.loop.closer"):
+    with caplog.at_level(logging.DEBUG, logger="plvo.loop.closer"):  # a rejected candidate is DEBUG
         v = closer._register(39, 2, aside, "bow", 0)
     assert not v.accepted and "30.0 m apart" in v.reason and "no keyframe near the candidate" in v.reason
     assert any("candidate 2 (bow) for keyframe 39 rejected" in r.getMessage() and "30.0 m apart" in r.getMessage()

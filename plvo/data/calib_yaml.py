@@ -102,8 +102,9 @@ def read_calib_yaml(path: Path | str) -> CalibFile:
 
 
 def write_calib_yaml(path: Path | str, camera: CameraModel, T_cam_lidar: np.ndarray,
-                     elevation_offset_deg: float = 0.0) -> None:
-    """CameraModel and T_cam_lidar (4,4) -> calibration YAML readable by read_calib_yaml, written atomically."""
+                     elevation_offset_deg: float = 0.0, comment: str | None = None) -> None:
+    """CameraModel and T_cam_lidar (4,4) -> calibration YAML readable by read_calib_yaml, written atomically;
+    `comment` (lines) heads the file as YAML comments, e.g. where the calibration came from."""
     def flat(a: np.ndarray) -> list[float]:
         return [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)]
 
@@ -120,4 +121,5 @@ def write_calib_yaml(path: Path | str, camera: CameraModel, T_cam_lidar: np.ndar
         P = np.zeros((3, 4))
         P[:, :3] = camera.P
         data["projection_matrix"] = {"rows": 3, "cols": 4, "data": flat(P)}
-    write_text_atomic(path, yaml.safe_dump(data, sort_keys=False))
+    head = "".join(f"# {line}\n" for line in comment.splitlines()) if comment else ""
+    write_text_atomic(path, head + yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120))

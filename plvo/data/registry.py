@@ -44,6 +44,8 @@ class Layout:
     open: Callable[[Path | None, str, FrameSelection, int], Dataset]
     locate: Callable[[Path, str], list[tuple[Path, Path]]] | None = None
     needs_root: bool = True
+    listing: Callable[[Path], list[str]] | None = None
+    plural: str = "sequences"
 
 
 def _locate_odometry(root: Path, sequence: str) -> list[tuple[Path, Path]]:
@@ -64,6 +66,42 @@ def _locate_raw(root: Path, drive: str) -> list[tuple[Path, Path]]:
     return found
 
 
+def _has_data(directory: Path, scans: str, images: tuple[str, ...]) -> bool:
+    """Whether a sequence folder has scans and images of some camera: a KITTI download's calibration part alone
+    makes folders for all 22 sequences, with nothing to run in most."""
+    def nonempty(d: Path) -> bool:
+        return d.is_dir() and next(d.iterdir(), None) is not None
+
+    return nonempty(directory / scans) and any(nonempty(directory / i) for i in images)
+
+
+def _subdirs(directory: Path) -> list[Path]:
+    try:
+        return sorted(d for d in directory.iterdir() if d.is_dir() and not d.name.startswith("."))
+    except OSError:
+        return []
+
+
+def _list_odometry(root: Path) -> list[str]:
+    images = tuple(f"image_{c}" for c in range(4))
+    found = {d.name for d in _subdirs(root / "sequences") if _has_data(d, "velodyne", images)}
+    if root.name == "sequences":  # root given one level too deep, as _locate_odometry takes it
+        found |= {d.name for d in _subdirs(root) if _has_data(d, "velodyne", images)}
+    return sorted(found)
+
+
+def _list_raw(root: Path) -> list[str]:
+    images = tuple(f"image_0{c}/data" for c in range(4))
+    days = [root] if re.fullmatch(r"\d{4}_\d{2}_\d{2}", root.name) else _subdirs(root)
+    found = []
+    for day in days:
+        for drive in _subdirs(day):
+            match = RAW_DRIVE.match(drive.name)
+            if match and match.group(1) == day.name and drive.name.endswith("_sync") \
+                    and _has_data(drive, "velodyne_points/data", images):
+                found.append(f"{match.group(1)}_drive_{match.group(2)}")
+    return sorted(found)
+
 
 def _rooted(root: Path | None) -> Path:
     """The root a layout with needs_root is opened with (the registry locates one before opening it)."""
@@ -79,6 +117,7 @@ _LAYOUTS: list[Layout] = [
         matches=lambda s: re.fullmatch(r"\d{2}", s) is not None,
         open=lambda root, seq, frames, camera: KittiOdometry(_rooted(root), seq, frames=frames, camera=camera),
         locate=_locate_odometry,
+        listing=_list_odometry,
     ),
     Layout(
         name="kitti_raw",
@@ -86,6 +125,8 @@ _LAYOUTS: list[Layout] = [
         matches=lambda s: RAW_DRIVE.match(s) is not None,
         open=lambda root, seq, frames, camera: KittiRaw(_rooted(root), seq, frames=frames, camera=camera),
         locate=_locate_raw,
+        listing=_list_raw,
+        plural="drives",
     ),
 ]
 
@@ -170,6 +211,41 @@ def _open(root: Path | str | None, sequence: str | None, frames: FrameSelection,
         known = "; ".join(lay.description for lay in _LAYOUTS)
         raise DatasetError(f"sequence {sequence!r}: not found under {base} and of no known form, expected {known}")
     raise DatasetError(f"{by_name[0].name} {sequence!r} not found: looked for {', '.join(map(str, looked))}")
+
+
+def list_sequences(root: Path | str) -> list[tuple[Layout, str]]:
+    """The sequences a dataset root holds, by the registered layouts' listings, in layout order then by name: the
+    odometry sequences under root/sequences/ and the raw drives under root/DATE/ that have scans and images."""
+    root = Path(root).expanduser()
+    return [(layout, name) for layout in _LAYOUTS if layout.listing is not None for name in layout.listing(root)]
+
+
+def describe_sequences(found: list[tuple[Layout, str]]) -> str:
+    """'sequences 00, 04 and drives 2011_09_26_drive_0009'."""
+    groups: dict[str, list[str]] = {}
+    for layout, name in found:
+        groups.setdefault(layout.plural, []).append(name)
+    return " and ".join(f"{plural} {', '.join(names)}" for plural, names in groups.items())
+
+
+def only_sequence(root: Path | str, what: str = "--root") -> str | None:
+    """The sequence to run when `root` is given without one: None for a recording (a bag or a plain folder), which
+    needs none; the one sequence a dataset root holds; else DatasetError listing them (or saying none is there).
+    `what` names the root on that line (`--root DIR`, `$KITTI_ROOT DIR`)."""
+    path = Path(root).expanduser()
+    if is_bag(path) or is_folder(path) or path.is_file():  # a file that is no bag: open_dataset names it so
+        return None
+    if not path.is_dir():
+        raise DatasetError(f"dataset root {path}: no such directory")
+    found = list_sequences(path)
+    if len(found) == 1:
+        return found[0][1]
+    if found:
+        raise DatasetError(f"{what} {path} holds {describe_sequences(found)}; choose one with --seq")
+    kinds = "; ".join(f"{lay.description}" for lay in _LAYOUTS if lay.listing is not None)
+    raise DatasetError(f"{what} {path} holds no sequence with scans and images ({kinds}) and is not a ROS bag or "
+                       "a plain folder (images/ + scans/): give the folder that holds sequences/ or the raw days, "
+                       "or name one with --seq")
 
 
 def parse_frames(text: str) -> slice:

@@ -101,16 +101,26 @@ class StaticTransforms:
 
     def lookup(self, target: str, source: str) -> np.ndarray | None:
         """(4,4) T_target_source (maps points in `source` into `target`), or None when not connected."""
+        found = self.chain(target, source)
+        return None if found is None else found[0]
+
+    def chain(self, target: str, source: str) -> tuple[np.ndarray, list[str]] | None:
+        """(T_target_source, the frames from target to source it passes through), or None when not connected;
+        the frames say where a calibration came from (`camera <- base_link <- velodyne`)."""
         target, source = _strip(target), _strip(source)
         if target == source:
-            return np.eye(4)
+            return np.eye(4), [target]
         seen, queue = {target: np.eye(4)}, deque([target])
+        parent: dict[str, str] = {}
         while queue:  # breadth first from target; seen[f] = T_target_f
             frame = queue.popleft()
             for nxt, T_frame_nxt in self._edges.get(frame, {}).items():
                 if nxt not in seen:
-                    seen[nxt] = seen[frame] @ T_frame_nxt
+                    seen[nxt], parent[nxt] = seen[frame] @ T_frame_nxt, frame
                     if nxt == source:
-                        return seen[nxt]
+                        path = [nxt]
+                        while path[-1] != target:
+                            path.append(parent[path[-1]])
+                        return seen[nxt], path[::-1]
                     queue.append(nxt)
         return None

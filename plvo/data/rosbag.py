@@ -4,7 +4,8 @@ A bag is a `.bag` file (ROS 1), a ROS 2 folder with metadata.yaml (sqlite3 or mc
 One image topic (sensor_msgs Image or CompressedImage) and one cloud topic (PointCloud2) are read: the ones named
 in SourceOptions, or the only one of each kind. Each image is paired with the scan nearest in header stamp within
 SourceOptions.max_pair_dt. Calibration comes from a YAML file (plvo.data.calib_yaml) or from the bag: CameraInfo
-(the one beside the image topic) and the static transform (/tf_static) between the image's and the cloud's frames.
+(the one beside the image topic) and the static transform (/tf_static) between the image's and the cloud's frames;
+one INFO line for K and one for T_cam_lidar say which file, topic, message and frames they came from.
 Distorted images are rectified. The bag is indexed once (stamps of every message read); frames are read lazily.
 """
 
@@ -147,6 +148,7 @@ class RosbagDataset(SelectedFrames):
         images, scans = [], []
         ranks: dict[tuple[str, int], int] = {}
         self._info, self._tf = None, StaticTransforms()
+        self._info_topic, self._info_stamp_ns, self._info_count = info_topic, 0, 0
         first: dict[str, object] = {}
         wanted = [c for c in reader.connections if c.topic in (self.image_topic, self.cloud_topic, info_topic)
                   or (c.msgtype == TF_TYPE and c.topic in TF_STATIC_TOPICS)]
@@ -160,7 +162,9 @@ class RosbagDataset(SelectedFrames):
                 self._tf.add(msg)
                 continue
             if conn.topic == info_topic:
-                self._info = self._info or msg
+                if self._info is None:
+                    self._info, self._info_stamp_ns = msg, stamp_ns(msg, bag_ns)
+                self._info_count += 1
                 continue
             key = (conn.topic, bag_ns)
             ranks[key] = ranks.get(key, -1) + 1
@@ -202,6 +206,10 @@ class RosbagDataset(SelectedFrames):
         if opts.calib is not None:
             cf = read_calib_yaml(opts.calib)
             camera, T_cam_lidar, offset, source = cf.camera, cf.T_cam_lidar, cf.elevation_offset_deg, opts.calib
+            has_own = self._info is not None or bool(self._tf.frames)
+            unused = "; the bag's own CameraInfo and /tf_static not used" if has_own else ""
+            log.info("calibration: K from %s (--calib)%s", opts.calib, unused)
+            log.info("calibration: T_cam_lidar from %s (--calib)%s", opts.calib, unused)
         else:
             camera, T_cam_lidar = self._bag_calibration(first)
             offset, source = 0.0, f"{self.path} CameraInfo"
@@ -220,13 +228,22 @@ class RosbagDataset(SelectedFrames):
                                    f"({which}); give a calibration YAML with --calib")
         camera = camera_model(self._info, f"{self.path} CameraInfo")
         cam_frame = self._info.header.frame_id or first["image"].header.frame_id
+        cam_from = "CameraInfo" if self._info.header.frame_id else f"{self.image_topic} (the CameraInfo names none)"
         lidar_frame = first["cloud"].header.frame_id
-        T = self._tf.lookup(cam_frame, lidar_frame)
-        if T is None:
+        found = self._tf.chain(cam_frame, lidar_frame)
+        if found is None:
             frames = ", ".join(self._tf.frames) or "none"
             raise CalibrationError(f"{self.path}: no calibration: no static transform between camera frame "
                                    f"{cam_frame!r} and lidar frame {lidar_frame!r} on /tf_static (frames: {frames}); "
                                    "give a calibration YAML with --calib")
+        T, path = found
+        # a bag's CameraInfo may change over the bag (a recalibration) and /tf_static may hold several trees: say
+        # which message and which edges the run took
+        log.info("calibration: K from %s (the first of its %d messages, stamp %.6f s%s)", self._info_topic,
+                 self._info_count, 1e-9 * self._info_stamp_ns,
+                 f", {camera.model} distortion, rectified" if camera.needs_rectification else "")
+        log.info("calibration: T_cam_lidar from /tf_static %s (camera frame %r from %s, lidar frame %r from %s)",
+                 " <- ".join(path), cam_frame, cam_from, lidar_frame, self.cloud_topic)
         return camera, T
 
     # --- reading ----------------------------------------------------------------------------------------------

@@ -108,8 +108,8 @@ def compact_keyframe(kf: LoopKeyframe) -> LoopKeyframe:
 
 def _refused(v: Verification, reason: str) -> Verification:
     """A registration's verification (its log said "registered") refused after all, for reason: logged as every
-    other refusal, so that a run's log says what became of each candidate."""
-    log.info("loop candidate %d (%s) for keyframe %d rejected: %s", v.cand_id, v.detector, v.query_id, reason)
+    other refusal (at DEBUG: a run's log under -vv says what became of each candidate)."""
+    log.debug("loop candidate %d (%s) for keyframe %d rejected: %s", v.cand_id, v.detector, v.query_id, reason)
     return dataclasses.replace(v, accepted=False, T_cand_query=np.eye(4), stage=REGISTRATION, reason=reason)
 
 
@@ -260,8 +260,8 @@ class LoopCloser:
         since = len(self._ids) - 1 - self._last_loop_at
         if since <= self.cfg.loop_cooldown:
             why = f"{since} keyframes since the last loop (cooldown {self.cfg.loop_cooldown})"
-            log.info("loop candidates %s for keyframe %d not verified: %s",
-                     list(map(int, det.to_verify)) + [c.kf_id for _, c in lidar], kf.kf_id, why)
+            log.debug("loop candidates %s for keyframe %d not verified: %s",
+                      list(map(int, det.to_verify)) + [c.kf_id for _, c in lidar], kf.kf_id, why)
             return (), None, (why,)
         checks: list[Verification] = []
         rejections: list[str] = []
@@ -306,7 +306,7 @@ class LoopCloser:
         far = self._too_far(query_id, cid)
         if not far:  # decided by the odometry alone: not worth a PnP/PnL or a registration
             return None
-        log.info("loop candidate %d for keyframe %d rejected: %s", cid, query_id, far)
+        log.debug("loop candidate %d for keyframe %d rejected: %s", cid, query_id, far)
         return Verification(query_id, cid, False, np.eye(4), 0, 0, 0, 0, False, 0.0, far, 0.0, detector, TOO_FAR,
                             place_inliers)
 

@@ -153,6 +153,10 @@ def align_maps(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray, cfg: LoopCo
     fit = _measure(se3.transform_points(T, src), cKDTree(q), q, normals, voxel_m)
     overlap, error, weak = fit.overlap, fit.error_m, fit.weakest
     constraint = float(np.linalg.eigvalsh(fit.H)[0])
+    if not (np.isfinite(fit.step_m) and np.isfinite(fit.step_deg)):  # too few points near the map to measure it
+        return refuse(f"no pose: the registration left the local maps apart ({round(overlap * len(src))} of "
+                      f"{len(src)} query points within {voxel_m:g} m of the candidate's map)", T, overlap, error,
+                      constraint)
     if fit.step_m > 0.01 or fit.step_deg > 0.05:
         return refuse(f"the registration did not converge (one more step would move it {fit.step_m:.3f} m, "
                       f"{fit.step_deg:.3f} deg)", T, overlap, error, constraint)

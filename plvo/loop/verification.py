@@ -158,7 +158,7 @@ def _pnp_config(cfg: LoopConfig) -> TrackingConfig:
 
 def _reject(q: LoopKeyframe, c: LoopKeyframe, t0: float, reason: str, stage: str,
             counts: tuple[int, int, int, int] = (0, 0, 0, 0)) -> Verification:
-    log.info("loop candidate %d for keyframe %d rejected: %s", c.kf_id, q.kf_id, reason)
+    log.debug("loop candidate %d for keyframe %d rejected: %s", c.kf_id, q.kf_id, reason)
     return Verification(q.kf_id, c.kf_id, False, np.eye(4), *counts, False, 0.0, reason, time.perf_counter() - t0,
                         stage=stage)
 
@@ -221,8 +221,9 @@ def verify_by_registration(query_id: int, cand_id: int, query_map: np.ndarray, c
 
     def done(accepted: bool, T: np.ndarray, reason: str, stage: str) -> Verification:
         reason = prefix + reason
-        log.info("loop candidate %d (%s) for keyframe %d %s: %s", cand_id, detector, query_id,
-                 "registered" if accepted else "rejected", reason)
+        # a registered candidate is news (INFO); a rejected one is DEBUG, as every rejection (a run has dozens)
+        log.log(logging.INFO if accepted else logging.DEBUG, "loop candidate %d (%s) for keyframe %d %s: %s",
+                cand_id, detector, query_id, "registered" if accepted else "rejected", reason)
         return Verification(query_id, cand_id, accepted, T, *counts, True, a.overlap, reason,
                             time.perf_counter() - t0, detector, stage, place_inliers, a)
 
