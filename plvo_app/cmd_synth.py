@@ -16,7 +16,7 @@ OUT/DATE, read as the real drive is (`plvo-viz --root OUT --seq DATE_drive_NNNN`
 from __future__ import annotations
 
 import argparse
-import logging
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +24,6 @@ from plvo.errors import SynthError
 
 # The generators (numpy, open3d, the renderer) and tqdm are imported when a sequence is made: `plvo synth --help`
 # answers at once.
-log = logging.getLogger(__name__)
 # plvo.data.synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/test_cli_terminal.py checks that they agree)
 LIDAR_NAMES = ("hdl64", "hdl32", "vlp16", "os128")
 
@@ -110,8 +109,8 @@ def run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
     seconds = time.perf_counter() - start
-    log.info("wrote %s/sequences/%s: %d frames in %.1f s (%.1f frames/s including town setup)",
-             root, args.seq, args.frames, seconds, args.frames / seconds)
+    print(f"wrote {root}/sequences/{args.seq}: {args.frames} frames in {seconds:.1f} s "
+          f"({args.frames / seconds:.1f} frames/s including town setup)", file=sys.stderr)
     return 0
 
 
@@ -142,8 +141,8 @@ def run_twins(args: argparse.Namespace) -> int:
                                overwrite=args.overwrite)
     seconds = time.perf_counter() - start
     frames = sum(r.frames for r in results)
-    log.info("wrote %d twin(s) under %s: %d frames in %.1f s (%.2f frames/s over the batch)",
-             sum(not r.cached and not r.error for r in results), args.out, frames, seconds, frames / max(seconds, 1e-9))
+    print(f"wrote {sum(not r.cached and not r.error for r in results)} twin(s) under {args.out}: {frames} frames in "
+          f"{seconds:.1f} s ({frames / max(seconds, 1e-9):.2f} frames/s over the batch)", file=sys.stderr)
     return 0 if not any(r.error for r in results) else 1
 
 
@@ -180,5 +179,5 @@ def run_raw_twin(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
     seconds = time.perf_counter() - start
-    log.info("wrote %s/%s/%s_sync in %.1f s", args.out, date, drive, seconds)
+    print(f"wrote {args.out}/{date}/{drive}_sync in {seconds:.1f} s", file=sys.stderr)
     return 0

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -31,7 +31,6 @@ if TYPE_CHECKING:
 
 # OpenCV, numpy, tqdm and the vocabulary are imported by the functions that train: `plvo vocab --help` answers at
 # once.
-log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
 
 
@@ -151,6 +150,6 @@ def run(args: argparse.Namespace) -> int:
         summary[name] = {"descriptors": int(sum(len(d) for d in descs)), "images": len(descs),
                          "depth": vocab.depth, "words": vocab.n_words, "train_s": round(seconds, 1),
                          "bytes": (out / f"{name}.npz").stat().st_size}
-        log.info("%s vocabulary: %r in %.1f s -> %s", name, vocab, seconds, out / f"{name}.npz")
+        print(f"{name} vocabulary: {vocab!r} in {seconds:.1f} s -> {out / f'{name}.npz'}", file=sys.stderr)
     write_text_atomic(out / "vocab.json", json.dumps(summary, indent=2) + "\n")
     return 0

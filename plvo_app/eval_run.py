@@ -29,7 +29,7 @@ from pathlib import Path
 
 from plvo import provenance
 from plvo.config import ABLATIONS
-from plvo.data.registry import ROOT_ENV, parse_frames
+from plvo.data import ROOT_ENV
 from plvo.errors import OutputError, PlvoError
 from plvo.eval.kiss import KissOptions
 from plvo.eval.report import build_report, report_markdown
@@ -141,6 +141,8 @@ def _label(sources: list[SequenceSource]) -> list[SequenceSource]:
 
 def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
     if args.frames:
+        from plvo.data.registry import parse_frames  # the dataset readers: imported when a run starts
+
         parse_frames(args.frames)  # fail early on a bad range
     sources = []
     from plvo.data.folder import is_folder

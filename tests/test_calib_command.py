@@ -24,7 +24,7 @@ from plvo.data.calib_yaml import read_calib_yaml, write_calib_yaml
 from plvo.data.camera_model import CameraModel
 from plvo.data.dataset import SourceOptions
 from plvo.data.folder import FolderDataset
-from plvo.data.kitti import KittiOdometry, KittiRaw, _calibration, _PykittiOdometry
+from plvo.data.kitti import KittiOdometry, KittiRaw, _calibration, _pykitti_odometry
 from plvo.data.registry import open_dataset
 from plvo_app.cli import main
 
@@ -101,7 +101,7 @@ def test_write_round_trip_kitti_04(kitti_root, tmp_path, capsys):
     status, printed, _ = _write(["--kitti", str(kitti_root / "calib" / "04-10.txt"), "--camera", "2", "--size",
                                  "1226x370", "--out", str(out2)], capsys)
     assert status == 0 and "camera 2" in printed and "from --size" in printed
-    expected = _calibration(_PykittiOdometry(str(kitti_root), "04").calib, 2, 1226, 370, 0.205)
+    expected = _calibration(_pykitti_odometry(str(kitti_root), "04").calib, 2, 1226, 370, 0.205)
     cf = read_calib_yaml(out2)
     _same_calib(cf.camera.calibration(cf.T_cam_lidar, cf.elevation_offset_deg), expected)
     assert "camera 2" in out2.read_text().splitlines()[1]  # the header says whose poses a folder run reports

@@ -125,9 +125,10 @@ def test_real_out_of_range_and_missing_camera(kitti_root):
 
 def test_images_and_scans_are_read_lazily(kitti_root, monkeypatch):
     calls = []
-    real_image, real_scan = kitti_module._gray8_png, kitti_module.kitti_utils.load_velo_scan
+    utils = kitti_module._pykitti().utils
+    real_image, real_scan = kitti_module._gray8_png, utils.load_velo_scan
     monkeypatch.setattr(kitti_module, "_gray8_png", lambda *a: calls.append(a) or real_image(*a))
-    monkeypatch.setattr(kitti_module.kitti_utils, "load_velo_scan", lambda *a: calls.append(a) or real_scan(*a))
+    monkeypatch.setattr(utils, "load_velo_scan", lambda *a: calls.append(a) or real_scan(*a))
     ds = open_dataset(kitti_root, "04")
     assert calls == []
     ds[5]

@@ -32,8 +32,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pykitti
-import pykitti.utils as kitti_utils
 from PIL import Image, UnidentifiedImageError
 
 from plvo.data.calib_check import check_calibration, check_rotation
@@ -154,7 +152,7 @@ def _read_calib(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
         raise CalibrationError(f"{path}: calibration file not found")
     try:
         text = path.read_text()
-        data = kitti_utils.read_calib_file(str(path))
+        data = _pykitti().utils.read_calib_file(str(path))
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{path}: cannot parse calibration ({exc})") from None
     lines: dict[str, tuple[int, str]] = {}
@@ -270,7 +268,8 @@ class _KittiSequence(SelectedFrames):
                 if colour and image.ndim == 2:
                     image = np.repeat(image[:, :, None], 3, axis=2)
             if image is None:
-                image = np.asarray(kitti_utils.load_image(str(path), mode="RGB" if colour else "L"), dtype=np.uint8)
+                loaded = _pykitti().utils.load_image(str(path), mode="RGB" if colour else "L")
+                image = np.asarray(loaded, dtype=np.uint8)
         except FileNotFoundError:
             raise DatasetError(f"{path}: missing image (frame {frame})") from None
         except (OSError, UnidentifiedImageError) as exc:
@@ -300,7 +299,7 @@ class _KittiSequence(SelectedFrames):
         path, frame = self._scans[i], self._frames[i]
         _check_scan_size(path, frame)
         try:
-            scan = kitti_utils.load_velo_scan(str(path))
+            scan = _pykitti().utils.load_velo_scan(str(path))
         except OSError as exc:  # a folder in its place, a permission, an I/O error: the file and its frame
             raise DatasetError(f"{path}: unreadable scan (frame {frame}): {exc.strerror or exc}") from None
         if np.isfinite(scan).all():  # the common case, 40x cheaper than the per-row mask below
@@ -314,11 +313,22 @@ class _KittiSequence(SelectedFrames):
         return scan
 
 
-class _PykittiOdometry(pykitti.odometry):
+def _pykitti():
+    """pykitti, imported on first use: it imports pandas (~0.3 s), which a command's --help need not wait for."""
+    import pykitti
+    import pykitti.utils
+
+    return pykitti
+
+
+def _pykitti_odometry(root: str, sequence: str):
     """pykitti's odometry loader without its pose reading (which prints instead of raising)."""
 
-    def _load_poses(self) -> None:
-        self.poses: list[np.ndarray] = []
+    class _PykittiOdometry(_pykitti().odometry):  # type: ignore[misc]
+        def _load_poses(self) -> None:
+            self.poses: list[np.ndarray] = []
+
+    return _PykittiOdometry(root, sequence)
 
 
 class KittiOdometry(_KittiSequence):
@@ -340,7 +350,7 @@ class KittiOdometry(_KittiSequence):
         times_file = seq_dir / "times.txt"
         times = _read_times(times_file, n)
         try:
-            data = _PykittiOdometry(str(root), sequence)
+            data = _pykitti_odometry(str(root), sequence)
         except (OSError, ValueError, KeyError) as exc:
             raise DatasetError(f"{seq_dir}: pykitti cannot load the sequence: {exc}") from None
         width, height = _image_size(images[selected[0]], selected[0])
@@ -544,7 +554,7 @@ def _oxts_records(oxts_dir: Path, stamps: Path, selected: tuple[int, ...]) -> tu
 def _load_pykitti_raw(root: Path, date: str, number: str, records: tuple[int, ...], oxts_dir: Path):
     """pykitti.raw over the given oxts records, frame 0 first (the origin of pykitti's oxts poses)."""
     try:
-        return pykitti.raw(str(root), date, number, frames=list(records))
+        return _pykitti().raw(str(root), date, number, frames=list(records))
     except (ValueError, TypeError, IndexError) as exc:
         for k in records:
             path = oxts_dir / f"{k:010d}.txt"

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from plvo.data import ROOT_ENV  # noqa: F401 - named here too, where the commands look for it
 from plvo.data.dataset import Dataset, FrameSelection, SourceOptions
 from plvo.data.folder import FolderDataset, is_folder
 from plvo.data.kitti import RAW_DRIVE, KittiOdometry, KittiRaw
@@ -24,7 +25,6 @@ from plvo.data.rosbag import RosbagDataset, is_bag
 from plvo.errors import DatasetError
 from plvo.lidar.beams import BeamResampled
 
-ROOT_ENV = "KITTI_ROOT"
 KITTI_DOWNLOAD = "https://www.cvlibs.net/datasets/kitti/eval_odometry.php"
 
 
