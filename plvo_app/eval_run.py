@@ -182,7 +182,9 @@ def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
     base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar,
                         realism=IDEAL if args.ideal_twins else REALISTIC)
     jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
-    with twin_progress("twins", lines=sys.stderr) as (progress, on_done):
+    from plvo_app.terminal import progress_enabled
+
+    with twin_progress("twins", bar=progress_enabled(), lines=sys.stderr) as (progress, on_done):
         done = ensure_twins(jobs, args.twin_root, workers=args.workers, ray=args.ray, progress=progress,
                             on_done=on_done)
     failed = [d for d in done if d.error]
