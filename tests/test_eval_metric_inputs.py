@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from faults_table import fault
 
 from plvo.data.trajectory import write_poses
 from plvo.errors import TrajectoryError
@@ -191,10 +192,12 @@ def test_tum_against_tum_is_associated_by_time(tmp_path, capsys):
 
 
 def test_too_few_pairs_in_time_is_one_line(tmp_path, capsys):
+    row = fault("metric-unpaired")
     write_poses(tmp_path / "gt.txt", GT, TIMES, "tum")
     write_poses(tmp_path / "est.txt", EST, TIMES - 1000.0, "tum")  # another clock
     line = _refused(capsys, "--gt", tmp_path / "gt.txt", "--est", tmp_path / "est.txt")
     assert f"{tmp_path / 'est.txt'}: 0 of {N} poses have a truth pose in {tmp_path / 'gt.txt'} within 0.02 s" in line
+    assert row.message in line and row.exit == 2
     assert "same clock" in line and "--max-dt" in line
 
 
@@ -230,10 +233,11 @@ def test_a_tum_run_folder_is_paired_by_time_with_a_kitti_truth(kitti_root, tmp_p
 
 
 def test_missing_pieces_are_one_line(kitti_root, tmp_path, capsys):
+    row = fault("metric-no-truth")
     gt = kitti_root / "poses" / "00.txt"
     no_truth = _results(tmp_path / "no_truth", range(0, 30), truth=False)
     line = _refused(capsys, "--est", no_truth)
-    assert line == f"error: {no_truth}: no truth.txt (the run's data had no ground truth); give --gt"
+    assert line == f"error: {no_truth}: {row.message}" and row.exit == 2
     assert main(["eval", "metric", "--est", str(no_truth), "--gt", str(gt)]) == 0  # --gt is the way out
     failed = tmp_path / "failed"
     failed.mkdir()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from bag_writer import BagSpec, write_bag
-from faults_table import one_error_line
+from faults_table import fault, one_error_line
 
 from plvo.data.calib_yaml import write_calib_yaml
 from plvo.data.camera_model import CameraModel
@@ -57,6 +57,7 @@ def _args(*argv: str) -> argparse.Namespace:
 
 
 def test_several_are_listed_on_one_line(town, tmp_path, capsys, monkeypatch):
+    row = fault("root-several")
     root = _odometry_root(tmp_path / "kitti", town, ["07", "00", "04"])
     _raw_drive(root, DRIVE)
     (root / "2011_09_26" / "2011_09_26_drive_0011_sync").mkdir()  # an empty drive folder: nothing to run
@@ -67,7 +68,7 @@ def test_several_are_listed_on_one_line(town, tmp_path, capsys, monkeypatch):
     expected = f"--root {root} holds sequences 00, 04, 07 and drives {DRIVE}; choose one with --seq"
     with pytest.raises(DatasetError) as exc:
         cmd_viz._open(_args("--root", str(root)))
-    assert str(exc.value) == expected
+    assert str(exc.value) == expected and row.message in expected and exc.value.exit_status == row.exit
     # the command: one line, exit 2, nothing written
     out = tmp_path / "results"
     monkeypatch.chdir(tmp_path)
