@@ -21,16 +21,16 @@ PathLike = str | os.PathLike[str]
 ROTATION_TOLERANCE = 1e-3
 
 
-def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False):
+def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False, kind: str = "pose"):
     """Parse a whitespace-separated text file into (N, n_cols) float64, naming the file and line on error
-    (with_lines: also the (N,) line numbers)."""
+    (with_lines: also the (N,) line numbers; kind: what the file is called in errors, "pose" or "times")."""
     path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
-        raise TrajectoryError(f"{path}: no such pose file") from None
+        raise TrajectoryError(f"{path}: no such {kind} file") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(f"{path}: cannot read pose file ({exc})") from None
+        raise TrajectoryError(f"{path}: cannot read {kind} file ({exc})") from None
     rows, linenos = [], []
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
@@ -51,7 +51,7 @@ def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False)
         rows.append(values)
         linenos.append(lineno)
     if not rows:
-        raise TrajectoryError(f"{path}: no poses in file")
+        raise TrajectoryError(f"{path}: no {'poses' if kind == 'pose' else kind} in file")
     poses = np.asarray(rows, dtype=np.float64)
     return (poses, np.asarray(linenos)) if with_lines else poses
 

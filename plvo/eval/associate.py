@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plvo.data.trajectory import read_kitti_poses, read_tum
+from plvo.data.trajectory import _read_rows, read_kitti_poses, read_tum
 from plvo.errors import TrajectoryError
 
 PathLike = str | os.PathLike[str]
@@ -94,28 +94,10 @@ def read_pose_file(path: PathLike) -> PoseFile:
 def read_times(path: PathLike, n: int) -> np.ndarray:
     """A times file (one time in seconds a line, as KITTI's times.txt) -> the first n times; it may hold more, as
     plvo's KITTI loader allows, but not fewer."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise TrajectoryError(f"{path}: no such times file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(f"{path}: cannot read times file ({exc})") from None
-    values = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            value = float(line.split()[0])
-        except ValueError:
-            raise TrajectoryError(f"{path}:{lineno}: not a time in seconds: {line!r}") from None
-        if not np.isfinite(value):
-            raise TrajectoryError(f"{path}:{lineno}: NaN or infinite time")
-        values.append(value)
+    values = _read_rows(path, 1, "a time in seconds", kind="times")[:, 0]
     if len(values) < n:
         raise TrajectoryError(f"{path}: {len(values)} times for {n} poses")
-    return np.asarray(values[:n], dtype=np.float64)
+    return values[:n]
 
 
 def times_beside(path: PathLike) -> Path | None:
