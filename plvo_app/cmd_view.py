@@ -27,6 +27,12 @@ def view(path: Path, port: int = 8080, serve: bool = True) -> int:
     if not store.frames:
         raise RecordingError(f"{path}: the recording holds no frames")
     print(f"{path}: {len(store.frames)} frames ({store.frames[0]}..{store.frames[-1]})", file=sys.stderr)
+    if store.detail:  # where to look first; the viewer's "Full detail" list jumps there
+        runs = [f"{a}{'' if b == a + 1 else f'-{b - 1}'} ({why})" for a, b, why in store.detail]
+        more = f", and {len(runs) - 5} more" if len(runs) > 5 else ""
+        n = sum(b - a for a, b, _ in store.detail)
+        print(f"full detail on {n} frame{'s' * (n != 1)}: {'; '.join(runs[:5])}{more}; the others show their "
+              "keyframe's thinned scan and image", file=sys.stderr)
     if not serve:
         return 0
     serve_until_interrupted(ViserViewer(store, port=port), "viser viewer")

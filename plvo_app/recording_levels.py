@@ -1,8 +1,11 @@
 """Recording levels: which frames of a run get full detail in the .rrd (plvo_app.level_sizes measures their bytes).
 
 Every level keeps the whole-run picture at full length (camera pose, keyframes, graph with zeta, loops, timings and
-counts, the decision log, the map at keyframes, thinned). Detail (the image with every overlay, raw and merged
-segments, the projected scan and patches, planes, fitted lines, the scan, full map snapshots) is kept:
+counts, the decision log, the map at keyframes, thinned) and, on every second keyframe, its scan and camera image
+thinned to a few kB (so that a replay shows the road everywhere, not only where the detail is), and the list of the
+frames that got detail and why (written on close: what a viewer offers to jump to). Detail (the image with every
+overlay, raw and merged segments, the projected scan and patches, planes, fitted lines, the scan, full map
+snapshots) is kept:
 
 - summary: only in the windows the user names (`--detail A:B`);
 - default: also on every `keyframe_stride`-th keyframe and in windows around events: tracking lost or
@@ -73,6 +76,8 @@ class DetailPolicy:
     def __init__(self, opt: DetailOptions):
         self.opt = opt
         self._open: list[tuple[int, int]] = list(opt.windows)  # [a, b) windows of detail
+        # every window opened, with why: what the recording's list of detail frames names (see detail_runs)
+        self.windows: list[tuple[int, int, str]] = [(a, b, f"--detail {a}:{b}") for a, b in opt.windows]
         self._held: dict[int, list[Any]] = {}
         self._order: deque[int] = deque()
         self._n_keyframes = 0
@@ -98,7 +103,7 @@ class DetailPolicy:
         """A keyframe was made at `frame`; the frames that became detail (to flush)."""
         n, self._n_keyframes = self._n_keyframes, self._n_keyframes + 1
         if self.opt.level == "default" and self.opt.keyframe_stride > 0 and n % self.opt.keyframe_stride == 0:
-            return self._open_window(frame, frame + 1)
+            return self._open_window(frame, frame + 1, f"keyframe {n} (1 in {self.opt.keyframe_stride})")
         return []
 
     def event(self, frame: int, why: str) -> list[int]:
@@ -111,7 +116,7 @@ class DetailPolicy:
             return []
         self.n_event_windows += 1
         self._per_kind[why] = self._per_kind.get(why, 0) + 1
-        return self._open_window(frame - self.opt.before, frame + self.opt.after + 1)
+        return self._open_window(frame - self.opt.before, frame + self.opt.after + 1, f"{why} at frame {frame}")
 
     def timing(self, frame: int, seconds: float) -> bool:
         """`frame` took `seconds` to arrive (since the last step's end): True when that makes it a slow frame."""
@@ -135,9 +140,29 @@ class DetailPolicy:
         # a window stays known a while after it ends: the back end's results for its frames arrive late
         self._open = [(a, b) for a, b in self._open if b > frame - LATE_FRAMES]
 
-    def _open_window(self, a: int, b: int) -> list[int]:
+    def _open_window(self, a: int, b: int, why: str) -> list[int]:
         self._open.append((a, b))
+        self.windows.append((a, b, why))
         return sorted(f for f in self._held if a <= f < b)
+
+    def detail_runs(self, written: set[int] | list[int]) -> list[tuple[int, int, str]]:
+        """The frames that got detail (`written`: the recorder knows, the windows do not: a loop verified ten frames
+        late opens a window whose frames were already dropped) as [a, b) runs of consecutive frames, each with the
+        reasons of the windows that cover it."""
+        frames = sorted(written)
+        if self.everything:
+            return [(frames[0], frames[-1] + 1, "every frame (--record full)")] if frames else []
+        runs: list[tuple[int, int, str]] = []
+        i = 0
+        while i < len(frames):
+            j = i
+            while j + 1 < len(frames) and frames[j + 1] == frames[j] + 1:
+                j += 1
+            a, b = frames[i], frames[j] + 1
+            why = list(dict.fromkeys(w for wa, wb, w in self.windows if wa < b and a < wb))
+            runs.append((a, b, "; ".join(why) or "detail"))
+            i = j + 1
+        return runs
 
 
 class Lazy:

@@ -6,7 +6,10 @@ fixed budget, the per-keyframe debug layers logged on keyframes only. Which fram
 the recording level's (plvo_app.recording_levels): every entity of level "summary" is written at full length, those
 of level "detail" on the level's detail frames only (all frames at `--record full`), so that a whole sequence stays
 a file a person can attach to a bug report. Detail that stops is cleared (a Clear at the first frame without it), so
-a viewer never shows a stale image as the current one.
+a viewer never shows a stale image as the current one. Every second keyframe also gets its scan and image thinned to
+a few kB (summary level: world/lidar/thin/*, world/camera/image/keyframe), so that a replay shows the road on every
+frame (latest-at: the last such keyframe's), and on close the recording gets the list of its detail frames and why
+("detail", and the property plvo_detail the viewers read).
 Scalars and the camera pose are buffered and sent as columns every 200 frames (and on close): one `rr.log` costs
 ~0.2 ms, and a frame has ~30 of them.
 """
@@ -52,12 +55,15 @@ from plvo_app.rrd_sink import RrdFileSink
 from plvo_app.run_identity import INPUT_HASH, INPUT_IMAGE, INPUT_SCAN, encode_inputs, file_digest, machine
 from plvo_app.scene_common import (
     CYAN,
+    DEPTH_FAR,
+    DEPTH_NEAR,
     GREEN,
     GREY,
     MAGENTA,
     ORANGE,
     RED,
     EstimateTrail,
+    RangeFaces,
     depth_colors,
     gt_in_estimate_world,
     inlier_colors,
@@ -96,8 +102,14 @@ ENTITIES: dict[str, Entity] = {
                "keyframe"),
         Entity("world/camera/image/line_patches", "LineStrips2D", "bands searched around segments for depth",
                "keyframe"),
-        Entity("world/lidar", "Transform3D", "lidar pose T_world_velo at the keyframe", "keyframe"),
+        Entity("world/camera/image/keyframe", "Transform3D (static scale), EncodedImage",
+               "the keyframe's image at 1/thin_image_scale size, JPEG, scaled up to the pinhole's pixels and drawn "
+               "under the full image: the camera panel between detail frames", "keyframe", "summary"),
+        Entity("world/lidar", "Transform3D", "lidar pose T_world_velo at the keyframe", "keyframe", "summary"),
         Entity("world/lidar/scan", "Points3D", "the keyframe scan, thinned, in the lidar frame", "keyframe"),
+        *[Entity(f"world/lidar/thin/{k}", "Transform3D and Pinhole (static), EncodedDepthImage",
+                 f"the keyframe scan thinned for every level: depth image {k} of scene_common.RangeFaces (a 16-bit "
+                 "PNG), drawn by Rerun as points", "keyframe", "summary") for k in range(RangeFaces().n)],
         Entity("world/depth/points", "Points3D", "point depth priors of the keyframe", "keyframe"),
         Entity("world/depth/lines", "LineStrips3D", "fitted 3D lines of the keyframe", "keyframe"),
         Entity("world/depth/planes", "Mesh3D", "fitted patch planes of the keyframe's point priors", "keyframe"),
@@ -124,6 +136,8 @@ ENTITIES: dict[str, Entity] = {
         Entity(INPUT_SCAN, "AnyValues scan, time", "the scan's float32 bytes and the frame time", "frame", "inputs"),
         Entity("log", "TextLog", "decisions: initialised, keyframe and why, tracking lost and re-initialised, loops "
                "accepted or rejected and why", "event", "summary"),
+        Entity("detail", "TextDocument (static)", "the frames with full detail and why, written on close (also as "
+               "the property plvo_detail: windows, JSON [[first, end, why], ...])", "static", "summary"),
     ]
 }
 # Short names used below; every path is a key of ENTITIES (checked at import).
@@ -136,9 +150,10 @@ E = {
     "scan": "world/lidar/scan", "depth_points": "world/depth/points", "depth_lines": "world/depth/lines",
     "map_points": "world/map/points", "map_lines": "world/map/lines", "keyframes": "world/keyframes",
     "graph": "world/graph", "graph_recent": "world/graph/recent", "loops": "world/loops",
-    "est": "world/trajectory/est", "gt": "world/trajectory/gt",
+    "est": "world/trajectory/est", "gt": "world/trajectory/gt", "image_kf": "world/camera/image/keyframe",
+    "thin": "world/lidar/thin", "detail": "detail",
 }
-assert set(E.values()) <= set(ENTITIES)
+assert set(E.values()) - {E["thin"]} <= set(ENTITIES)
 
 
 
@@ -158,6 +173,15 @@ class RerunOptions:
     # Outside detail frames the keyframes and the estimate (they grow with the run) are redrawn this often
     summary_every_keyframes: int = 20
     graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
+    # Every thin_every_keyframes-th keyframe, at every level: its scan as depth images (the number of faces is
+    # ENTITIES') and its image at 1/thin_image_scale size. Sized by the default level's budget, 25 MB for a whole
+    # KITTI 00 (4541 frames, ~1500 keyframes; plvo_app.level_sizes): ~3.5 kB of scan and ~2.4 kB of image a KITTI
+    # keyframe, every second one (estimated so, every keyframe at 1/4 and 1.5 degrees, ~10 kB, came to ~34 MB; at
+    # 1/5 and 2 degrees to ~29).
+    thin_scan: RangeFaces = RangeFaces()
+    thin_image_scale: int = 5
+    thin_image_quality: int = 40
+    thin_every_keyframes: int = 2
     embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
     compact_on_close: bool | None = None  # merge the chunks on close (plvo_app.rrd_compact); None: unless "full"
 
@@ -230,6 +254,9 @@ class RerunRecorder:
         self._warnings = _WarningCapture()
         self._input_files: dict[int, tuple[str, str]] = {}
         self._hashes: dict[int, tuple[str, str]] = {}
+        self._detail_frames: set[int] = set()  # frames a detail entity was written at
+        self._n_kf = 0
+        self._thin_size: tuple[int, int] | None = None
 
     # ---- Recorder protocol -------------------------------------------------------------------------------
     def on_run_start(self, info: RunInfo) -> None:
@@ -252,6 +279,7 @@ class RerunRecorder:
         c = info.calib
         rec.log(E["image"], rr.Pinhole(image_from_camera=c.K, resolution=[c.width, c.height],
                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0), static=True)
+        self._log_thin_statics(c.K, c.width, c.height)
         gt = gt_in_estimate_world(info)
         if gt is not None:
             rec.log(E["gt"], rr.LineStrips3D([gt[:, :3, 3].astype(np.float32)], colors=[(235, 235, 235)],
@@ -335,6 +363,7 @@ class RerunRecorder:
             self._set_time(self._at)
             self._log_graph(self._last_graph[1], whole=True)
         self._flush_scalars()
+        self._log_detail_list()
         if self._hashes:
             frames = sorted(self._hashes)
             self.rec.send_property("plvo_inputs", rr.AnyValues(
@@ -347,6 +376,30 @@ class RerunRecorder:
         compact = self.opt.compact_on_close
         if compact or (compact is None and not self._policy.everything):
             compact_file(self.path)
+
+    def _log_detail_list(self) -> None:
+        """Where the detail is and why: a document for Rerun's panel, the property for the viewers (plvo view)."""
+        runs = self._policy.detail_runs(self._detail_frames)
+        opt = self.opt.detail
+        says = {"summary": "detail only in the --detail windows",
+                "default": f"detail on 1 in {opt.keyframe_stride} keyframes and around events (at most "
+                           f"{opt.max_event_windows} windows)",
+                "full": "detail on every frame"}[opt.level]
+        k = max(1, self.opt.thin_every_keyframes)
+        lines = [f"# Full detail\n\nRecording level **{opt.level}**: {says}; "
+                 f"{'every keyframe' if k == 1 else f'1 in {k} keyframes'} has its scan and image thinned.\n",
+                 "| frames | why |", "|---|---|"]
+        lines += [f"| {a}{'' if b == a + 1 else f'-{b - 1}'} | {why} |" for a, b, why in runs]
+        if not runs:
+            lines.append("| none | |")
+        missed = [(f, why) for f, why in self._policy.events
+                  if not any(a <= f < b for a, b, _ in runs)]
+        if missed:
+            lines.append(f"\n{len(missed)} events without detail (past the cap, or known after their frames were "
+                         "dropped): " + ", ".join(f"{why} at {f}" for f, why in missed[:50]))
+        self.rec.log(E["detail"], rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+        self.rec.send_property("plvo_detail", rr.AnyValues(level=opt.level, windows=json.dumps(
+            [[int(a), int(b), why] for a, b, why in runs])))
 
     # ---- helpers -----------------------------------------------------------------------------------------
     def _scalars(self, prefix: str, values: dict[str, float]) -> None:
@@ -390,6 +443,7 @@ class RerunRecorder:
         self.rec.log(path, archetype)
         if ENTITIES[path].level == "detail":
             self._shown[path] = ENTITIES[path].when
+            self._detail_frames.add(self._at)
 
     def _write_held(self, frames: list[int]) -> None:
         """Frames that became detail (a stride keyframe, an event): write what was held back for them."""
@@ -401,6 +455,7 @@ class RerunRecorder:
                 self.rec.log(path, archetype)
                 if ENTITIES[path].level == "detail":
                     self._shown[path] = ENTITIES[path].when
+                    self._detail_frames.add(f)
         if held:
             self._set_time(self._at)
 
@@ -432,8 +487,10 @@ class RerunRecorder:
     def _log_dirty(self, force: bool = False) -> None:
         if not self._dirty:
             return
-        if not (force or self._policy.everything or self._policy.want(self._at)
-                or self._kfs_since_summary >= self.opt.summary_every_keyframes):
+        # Early in a run, when they are small, redrawn more often (1 in n/4 keyframes): a replay shows the trajectory
+        # from its first seconds on, not from the 20th keyframe (~+100 kB over a 4541-frame run)
+        every = min(self.opt.summary_every_keyframes, max(1, len(self._trail.kf_pose) // 4))
+        if not (force or self._policy.everything or self._policy.want(self._at) or self._kfs_since_summary >= every):
             return
         self._dirty = False
         self._kfs_since_summary = 0
@@ -511,12 +568,48 @@ class RerunRecorder:
                                                        radii=rr.Radius.ui_points(1)))
         self._log_scan()
 
+    def _log_thin_statics(self, K: np.ndarray, width: int, height: int) -> None:
+        """What the thin scan and image share across keyframes, once: the faces' pinholes and how their depth
+        images are drawn, the small image's scale up to the camera's pixels (drawn under the full image)."""
+        rec, faces = self.rec, self.opt.thin_scan
+        w, h = faces.size
+        for k in range(faces.n):
+            path = f"{E['thin']}/{k}"
+            rec.log(path, _transform(np.block([[faces.R_velo_face(k), np.zeros((3, 1))], [np.zeros((1, 3)), 1]])),
+                    rr.Pinhole(image_from_camera=faces.K, resolution=[w, h], camera_xyz=rr.ViewCoordinates.RDF,
+                               image_plane_distance=0.2, line_width=0.5), static=True)
+            # near red to far blue as the scan's depth_colors: the range reversed turns Rerun's turbo round
+            rec.log(path, rr.EncodedDepthImage.from_fields(
+                media_type="image/png", meter=1.0 / faces.unit, colormap=rr.components.Colormap.Turbo,
+                point_fill_ratio=0.12,
+                depth_range=[DEPTH_FAR / faces.unit, DEPTH_NEAR / faces.unit]), static=True)
+        s = max(1, self.opt.thin_image_scale)
+        self._thin_size = (max(1, round(width / s)), max(1, round(height / s)))
+        rec.log(E["image_kf"], rr.Transform3D(scale=[width / self._thin_size[0], height / self._thin_size[1], 1.0]),
+                rr.EncodedImage.from_fields(draw_order=-20.0, media_type="image/jpeg"), static=True)
+
+    def _log_thin(self, shown: np.ndarray | None) -> None:
+        """The keyframe's thin scan and image (every level, every thin_every_keyframes-th keyframe)."""
+        frame = self._frame
+        n, self._n_kf = self._n_kf, self._n_kf + 1
+        if frame is None or n % max(1, self.opt.thin_every_keyframes):
+            return
+        for k, png in enumerate(self.opt.thin_scan.encode(frame.scan[:, :3])):
+            self.rec.log(f"{E['thin']}/{k}", rr.EncodedDepthImage.from_fields(blob=png))  # the rest is static
+        if shown is not None and self._thin_size is not None:
+            small = cv2.resize(shown, self._thin_size, interpolation=cv2.INTER_AREA)
+            ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, self.opt.thin_image_quality,
+                                                   cv2.IMWRITE_JPEG_OPTIMIZE, 1])  # its own tables: -170 bytes
+            if ok:
+                self.rec.log(E["image_kf"], rr.EncodedImage.from_fields(blob=buf.tobytes()))
+
     def _log_scan(self) -> None:
         frame = self._frame
         if frame is None or self._T_world_cam is None:
             return
         scan = frame.scan[thin(len(frame.scan), self.opt.scan_max_points), :3]
         self._log(E["lidar"], _transform(self._T_world_cam @ frame.calib.T_cam_velo))
+        self._log_thin(frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR))
         self._log(E["scan"], rr.Points3D(scan.astype(np.float32), colors=depth_colors(np.linalg.norm(scan, axis=1)),
                                             radii=rr.Radius.ui_points(1.5)))
         self._overlay_pending = True  # the DepthDebug brings the projected scan; else it is made at the step's end

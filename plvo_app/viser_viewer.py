@@ -1,13 +1,17 @@
 """The viser web viewer: live during a run (`ViserRecorder`) and replay of a saved .rrd (`load_rrd`).
 
 Both fill a `SceneStore` (per-frame layers with Rerun's latest-at semantics) that `ViserViewer` shows on
-127.0.0.1: a frame slider with play/pause, layer toggles, the camera frustum with its image. It thins what it
-shows (never what is recorded) so that it stays responsive on a whole sequence; positions are sent as float32
-(float16 quantises at KITTI's hundreds of metres). World frame: RDF (OpenCV camera convention), so up is -y.
+127.0.0.1: a frame slider with play/pause, layer toggles with a legend of their colours, the camera frustum with its
+image and the image in a panel of its own, a view that follows the car, and (replay) the list of the frames with
+full detail, to jump to. It thins what it shows (never what is recorded) so that it stays responsive on a whole
+sequence; positions are sent as float32 (float16 quantises at KITTI's hundreds of metres). World frame: RDF (OpenCV
+camera convention), so up is -y.
 """
 
 from __future__ import annotations
 
+import bisect
+import html
 import logging
 import sys
 import threading
@@ -27,8 +31,14 @@ from plvo.types import Frame
 from plvo_app.guards import deferred_signals
 from plvo_app.rrd_index import load_rrd
 from plvo_app.scene_common import (
+    CYAN,
+    DEPTH_FAR,
+    DEPTH_NEAR,
     GREEN,
+    MAGENTA,
+    MAP_POINT,
     ORANGE,
+    ZETA_FULL,
     EstimateTrail,
     SceneStore,
     depth_colors,
@@ -56,6 +66,53 @@ LAYERS = {
     "by_lidar": ("poses by the lidar", True),
     "camera": ("camera", True),
 }
+# layer -> its colour: one RGB, or "depth" (scene_common.depth_colors) or "zeta" (zeta_colors). What _draw draws
+# with and what the legend shows, so that the two cannot differ.
+LAYER_COLORS: dict[str, Any] = {
+    "scan": "depth",
+    "map_points": MAP_POINT,
+    "map_lines": CYAN,
+    "graph": "zeta",
+    "keyframes": ORANGE,
+    "loops": MAGENTA,
+    "gt": GT_COLOR,
+    "est": GREEN,
+    "by_lidar": BY_LIDAR_COLOR,
+    "camera": GREEN,
+}
+LEGEND_NOTES = {
+    "scan": f"by distance, {DEPTH_NEAR:g} m to {DEPTH_FAR:g} m",
+    "graph": "edges by zeta, 0 to exp(-2); the keyframes",
+}
+
+
+def _css(rgb) -> str:
+    return "rgb({},{},{})".format(*(int(c) for c in rgb))
+
+
+def legend_html() -> str:
+    """The layers and their colours as HTML, from LAYER_COLORS and the colour functions the scene uses: two columns
+    of swatches, then what the gradients mean."""
+    cells = []
+    for key, (label, _) in LAYERS.items():
+        color = LAYER_COLORS[key]
+        if color == "depth":
+            stops = depth_colors(np.geomspace(DEPTH_NEAR, DEPTH_FAR, 6))
+        elif color == "zeta":
+            stops = zeta_colors(np.linspace(0.0, ZETA_FULL, 5), np.zeros(5, int))
+        else:
+            stops = [color]
+        fill = _css(stops[0]) if len(stops) == 1 else f"linear-gradient(90deg,{','.join(map(_css, stops))})"
+        swatch = f'<span style="display:inline-block;width:22px;height:9px;margin-right:5px;background:{fill}">' \
+                 "</span>"
+        if key == "graph":  # its toggle also shows the keyframes
+            swatch += f'<span style="display:inline-block;width:9px;height:9px;margin-right:5px;border-radius:5px;' \
+                      f'background:{_css(LAYER_COLORS["keyframes"])}"></span>'
+        cells.append(f'<div data-layer="{key}" style="white-space:nowrap">{swatch}{html.escape(label)}</div>')
+    notes = "; ".join(f"{LAYERS[k][0]}: {html.escape(n)}" for k, n in LEGEND_NOTES.items())
+    return ('<div class="plvo-legend" style="font-size:12px;line-height:18px">'
+            f'<div style="display:grid;grid-template-columns:1fr 1fr;column-gap:6px">{"".join(cells)}</div>'
+            f'<div style="color:#888;line-height:15px;margin-top:3px">{notes}</div></div>')
 
 
 @dataclass(frozen=True)
@@ -71,6 +128,7 @@ class ViewLimits:
     trajectory_points: int = 800
     trajectory_tolerance: float = 0.05
     image_width: int = 480
+    panel_image_width: int = 320  # the camera image in the sidebar
 
 
 def _jpeg_small(image: np.ndarray, width: int) -> bytes:
@@ -81,7 +139,9 @@ def _jpeg_small(image: np.ndarray, width: int) -> bytes:
 
 
 class ViserViewer:
-    """Serves a SceneStore on host:port. `live=True` adds a "follow live" toggle that tracks the newest frame."""
+    """Serves a SceneStore on host:port. `live=True` adds a "follow live" toggle that tracks the newest frame.
+    "follow the car" (on at the start) moves every browser's view along with the camera pose, keeping its angle;
+    a browser starts behind and above the car."""
 
     def __init__(self, store: SceneStore, host: str = "127.0.0.1", port: int = 8080, live: bool = False,
                  limits: ViewLimits | None = None, frustum_scale: float = 1.5):
@@ -95,6 +155,7 @@ class ViserViewer:
         self._handles: dict[str, Any] = {}  # scene nodes, made once and updated in place
         self._drawn: dict[str, Any] = {}  # the store value each node shows
         self._drawn_image: Any = None
+        self._panel_image: Any = None  # the JPEG the sidebar's image shows
         self._camera_placed = False
         self._followed: np.ndarray | None = None  # camera position the browsers' views were last moved with
         self._live = live
@@ -119,14 +180,60 @@ class ViserViewer:
             self.play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
             self.fps = gui.add_slider("frames/s", min=1, max=30, step=1, initial_value=10)
             self.follow = gui.add_checkbox("follow live", live, visible=live)
+            self.follow_car = gui.add_checkbox("follow the car", True,
+                                               hint="move the view along with the car (keeping its angle)")
             self.status = gui.add_markdown("")
+        with gui.add_folder("Camera image"):
+            self.image_panel = gui.add_image(np.full((60, self.limits.panel_image_width, 3), 235, np.uint8),
+                                             format="jpeg", jpeg_quality=85)
+            self.image_caption = gui.add_markdown("no image yet")
+        detail = list(getattr(self.store, "detail", []))
+        with gui.add_folder("Full detail", visible=bool(detail)) as self.detail_folder:
+            self.detail_text = gui.add_markdown(self._detail_text(detail))
+            self._detail_options = {self._detail_label(a, b, why): a for a, b, why in detail}
+            self.detail_pick = gui.add_dropdown("frames", list(self._detail_options) or ["none"])
+            self.detail_go = gui.add_button("Go to these frames", icon=viser.Icon.ARROW_RIGHT)
         with gui.add_folder("Layers"):
             self.toggles = {k: gui.add_checkbox(label, on) for k, (label, on) in LAYERS.items()}
+            self.legend = gui.add_html(legend_html())
         self.playing = False
         self.slider.on_update(lambda _: self._on_slider())
         self.play.on_click(lambda _: self._toggle_play())
+        self.follow_car.on_update(lambda _: self._on_follow_car())
+        self.detail_go.on_click(lambda _: self.jump_to_detail(self.detail_pick.value))
         for box in self.toggles.values():
             box.on_update(lambda _: self.show(self.slider.value, force=True))
+
+    @staticmethod
+    def _detail_label(a: int, b: int, why: str) -> str:
+        frames = f"{a}" if b == a + 1 else f"{a}-{b - 1}"
+        return f"{frames}: {why if len(why) <= 60 else why[:57] + '...'}"
+
+    @staticmethod
+    def _detail_text(detail: list[tuple[int, int, str]]) -> str:
+        if not detail:
+            return ""
+        n, w = sum(b - a for a, b, _ in detail), len(detail)
+        return (f"{n} frame{'s' * (n != 1)} in {w} window{'s' * (w != 1)} {'have' if n != 1 else 'has'} every layer "
+                "(the full scan, the image with its overlays); the others show their keyframe's thinned scan and "
+                "image.")
+
+    def jump_to_detail(self, label: str) -> None:
+        """Move the timeline to the first frame of the detail window named `label` (a dropdown option)."""
+        frame = self._detail_options.get(label)
+        frames = self.store.frames
+        if frame is None or not frames:
+            return
+        self.playing = False
+        self.play.label, self.play.icon = "Play", viser.Icon.PLAYER_PLAY
+        if self.follow.value:
+            self.follow.value = False  # a jump back in a live run: stop following the newest frame
+        self.slider.value = min(bisect.bisect_left(frames, frame), len(frames) - 1)
+
+    def _on_follow_car(self) -> None:
+        self._followed = None  # on again: start behind the car where it is now
+        if self.follow_car.value and self.shown_frame is not None:
+            self._follow(self.shown_frame)
 
     def _on_slider(self) -> None:
         if self.follow.value and self.slider.value < len(self.store.frames) - 1:
@@ -171,9 +278,10 @@ class ViserViewer:
             with self.server.atomic():  # one websocket window: the page applies it in one render frame
                 self._draw(f)
                 self.status.content = self._status_text(f, int(position))  # with the scene it names, not before
-            if self._live and self.follow.value:
+            if self.follow_car.value:
                 self._follow(f)
             self.shown_frame = f  # after drawing: readers of shown_frame see a finished scene
+            self._show_image(f)  # after the scene: a frame change reaches the page first, its image follows
 
     @staticmethod
     def _view_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -196,34 +304,66 @@ class ViserViewer:
         T = None if self.shown_frame is None else self.store.latest("pose", self.shown_frame)
         if T is None:
             return
-        position, look_at, up = self._view_of(T)
         t0 = time.monotonic()
         while time.monotonic() - t0 < 5.0:  # the client reports its camera shortly after connecting
-            try:
-                client.camera.up_direction = up
-                client.camera.position = position
-                client.camera.look_at = look_at
+            if self._place_client(client, T):
                 return
-            except AssertionError:
-                time.sleep(0.05)
+            time.sleep(0.05)
+
+    def _place_client(self, client: viser.ClientHandle, T: np.ndarray) -> bool:
+        """Put `client`'s view behind and above camera pose T; False while its camera is not reported yet."""
+        position, look_at, up = self._view_of(T)
+        try:
+            client.camera.up_direction = up
+            client.camera.position = position
+            client.camera.look_at = look_at
+            return True
+        except AssertionError:
+            return False
 
     def _follow(self, f: int) -> None:
-        """While following a live run, move every browser's view along with the camera (keeping its angle)."""
+        """Move every browser's view along with the camera (keeping the angle the user gave it); the first time (or
+        after "follow the car" is ticked again), put it behind the car."""
         T = self.store.latest("pose", f)
         if T is None:
             return
-        if self._followed is not None:
-            delta = T[:3, 3] - self._followed
-            for client in self.server.get_clients().values():
-                try:
-                    client.camera.position = client.camera.position + delta  # moves look_at along
-                except AssertionError:  # camera not reported yet
-                    pass
+        for client in self.server.get_clients().values():
+            if self._followed is None:
+                self._place_client(client, T)
+                continue
+            try:
+                client.camera.position = client.camera.position + (T[:3, 3] - self._followed)  # moves look_at along
+            except AssertionError:  # camera not reported yet: _on_connect places it
+                pass
         self._followed = T[:3, 3].copy()
+
+    def _show_image(self, f: int) -> None:
+        """The sidebar's camera image: the frame's own (detail frames) or its keyframe's thinned one."""
+        jpeg = self.store.latest("image", f)
+        source = getattr(self.store, "source", None)
+        where = source("image", f) if source is not None else None
+        if where is not None:
+            caption = f"frame {where[1]}" + (" (full detail)" if where[0] == "full" else
+                                             " (keyframe, thinned)" if where[1] == f else " (its keyframe's, thinned)")
+        else:
+            caption = "no image" if jpeg is None else f"frame {f}"
+        if caption != self.image_caption.content:
+            self.image_caption.content = caption
+        if jpeg is None or jpeg is self._panel_image:
+            return
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR_RGB)
+        if img is None:
+            return
+        w = self.limits.panel_image_width
+        self.image_panel.image = cv2.resize(img, (w, max(1, round(img.shape[0] * w / img.shape[1]))),
+                                            interpolation=cv2.INTER_AREA)
+        self._panel_image = jpeg
 
     def _status_text(self, f: int, position: int) -> str:
         msg = self.store.latest("log", f) or ""
-        return f"**{self.store.name}** frame **{f}** ({position + 1}/{len(self.store.frames)})  \n{msg}"
+        why = next((w for a, b, w in getattr(self.store, "detail", []) if a <= f < b), None)
+        where = "" if why is None else f"  \nfull detail: {why}"
+        return f"**{self.store.name}** frame **{f}** ({position + 1}/{len(self.store.frames)})  \n{msg}{where}"
 
     def _layer(self, key: str, visible: bool, data: Any, make, update) -> None:
         """Show scene node `key`: made once by make(), then updated in place by update(handle) only when `data`
@@ -266,23 +406,35 @@ class ViserViewer:
                     None if scan is None else scan[1][cut], on["scan"], 0.05)
         pts = s.latest("map_points", f)
         self._cloud("map_points", "/map/points", pts, None if pts is None else pts[thin(len(pts), lim.map_points)],
-                    (70, 70, 90), on["map_points"], 0.1)
+                    LAYER_COLORS["map_points"], on["map_points"], 0.1)
         lines = s.latest("map_lines", f)
-        self._segments("map_lines", "/map/lines", lines, lines, on["map_lines"], (40, 200, 230), 1.5)
+        self._segments("map_lines", "/map/lines", lines, lines, on["map_lines"], LAYER_COLORS["map_lines"], 1.5)
         graph = s.latest("graph", f)
         self._segments("graph", "/graph", graph, None if graph is None else graph[0], on["graph"],
                        None if graph is None else np.repeat(graph[1][:, None], 2, axis=1), 2.0)
         kfs = s.latest("keyframes", f)
-        self._cloud("keyframes", "/keyframes", kfs, None if kfs is None else np.asarray(kfs, np.float32), ORANGE,
-                    on["graph"], 0.4)
+        self._cloud("keyframes", "/keyframes", kfs, None if kfs is None else np.asarray(kfs, np.float32),
+                    LAYER_COLORS["keyframes"], on["graph"], 0.4)
         loops = s.latest("loops", f)
-        self._segments("loops", "/loops", loops, loops, on["loops"], (255, 0, 255), 3.0)
-        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], GT_COLOR, 2.0)
-        self._polyline("est", "/trajectory/est", s.latest("est", f), on["est"], GREEN)
+        self._segments("loops", "/loops", loops, loops, on["loops"], LAYER_COLORS["loops"], 3.0)
+        self._polyline("gt", "/trajectory/gt", s.gt, on["gt"], LAYER_COLORS["gt"], 2.0)
+        est = s.latest("est", f)
+        self._polyline("est", "/trajectory/est", est, on["est"], LAYER_COLORS["est"])
+        self._polyline("est_tail", "/trajectory/est_tail", self._tail(f, est), on["est"], LAYER_COLORS["est"])
         by = s.latest("by_lidar", f)
         self._cloud("by_lidar", "/trajectory/by_lidar", by, None if by is None else np.asarray(by, np.float32),
-                    BY_LIDAR_COLOR, on["by_lidar"], 0.5)
+                    LAYER_COLORS["by_lidar"], on["by_lidar"], 0.5)
         self._camera(f, on["camera"])
+
+    def _tail(self, f: int, est: Any) -> np.ndarray | None:
+        """A replay's estimate is redrawn every few keyframes: from its end to the car, the camera's own positions
+        (the store's track), so that the trajectory reaches the car on every frame. None live (redrawn each
+        keyframe) and when the estimate is drawn at this very frame."""
+        track, where = getattr(self.store, "track", None), getattr(self.store, "source", None)
+        at = None if track is None or where is None else where("est", f)
+        if at is None or at[1] >= f or est is None or not len(est):
+            return None
+        return np.vstack([np.asarray(est, np.float32)[-1:], track(at[1], f)])
 
     def _segments(self, key: str, name: str, data: Any, segs: np.ndarray | None, visible: bool, color,
                   width_px: float) -> None:
@@ -342,7 +494,7 @@ class ViserViewer:
             self._drawn_image = jpeg
             return self.server.scene.add_camera_frustum(
                 "/camera", fov=float(fov), aspect=s.width / s.height, scale=self.frustum_scale, image=image(),
-                format="jpeg", color=(40, 220, 60), wxyz=wxyz, position=T[:3, 3])
+                format="jpeg", color=LAYER_COLORS["camera"], wxyz=wxyz, position=T[:3, 3])
 
         def update(h):
             h.wxyz, h.position = wxyz, T[:3, 3]

@@ -103,9 +103,13 @@ def test_replay_store_honours_the_clears(default):
 
     store = load_rrd(default.path)
     end = max(_window(LOST_FRAME)) + 1
-    assert store.latest("image", end - 1) is not None and store.latest("image", end) is None
+    full = store.index.latest("/world/camera/image", "EncodedImage:blob", end)
+    assert store.source("image", end - 1) == ("full", end - 1) and full is None
+    # after the detail, the last keyframe's thin image, not the full image of a frame that has none
+    last_thin = max(f for f in default.frames("/world/camera/image/keyframe") if f <= end)
+    assert store.source("image", end) == ("thin", last_thin) and store.latest("image", end) is not None
     # frame 1 was cleared when it ended, then its held-back image was written when the loss at frame 4 wanted it
-    assert 1 in default.cleared["/world/camera/image"] and store.latest("image", 1) is not None
+    assert 1 in default.cleared["/world/camera/image"] and store.source("image", 1) == ("full", 1)
     assert store.latest("pose", end) is not None  # the summary is not cleared
 
 

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from app_fakes import drive, pose
 
-from plvo_app.rerun_recorder import RerunRecorder
-from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer, load_rrd
+from plvo_app.recording_levels import DetailOptions
+from plvo_app.rerun_recorder import RerunOptions, RerunRecorder
+from plvo_app.viser_viewer import LAYER_COLORS, LAYERS, SceneStore, ViserRecorder, ViserViewer, _css, load_rrd
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -123,6 +124,69 @@ def test_page_connects_draws_and_follows_slider_toggles_and_play(browser, replay
     assert _wait(lambda: v.playing and v.shown_frame != 6, timeout=10), "play did not move the frame"
     page.get_by_role("button", name="Pause").click()
     assert _wait(lambda: not v.playing)
+    page.close()
+
+
+@pytest.fixture(scope="module")
+def detail_viewer(tmp_path_factory):
+    """A default-level replay of 30 fake frames, full detail on 1 in 4 keyframes and around the events."""
+    path = tmp_path_factory.mktemp("detail") / "default.rrd"
+    rec = RerunRecorder(path, RerunOptions(detail=DetailOptions(keyframe_stride=4)))
+    drive(rec, 30)
+    rec.close()
+    viewer = ViserViewer(load_rrd(path), port=_free_port())
+    yield viewer
+    viewer.close()
+
+
+_PANEL_IMAGES = """() => [...document.querySelectorAll('img')].filter(i => i.src.startsWith('blob:')).map(i => {
+    const r = i.getBoundingClientRect();
+    return [i.naturalWidth, i.naturalHeight, r.x, r.y, r.width, r.height];
+})"""
+
+
+def test_page_shows_the_camera_image_the_legend_and_the_detail_frames(browser, detail_viewer, tmp_path):
+    """The sidebar has the camera image (the frame's own on detail frames, else its keyframe's thin one), a legend
+    of every layer in the colour the scene draws it with, and the list of the detail frames, whose button moves the
+    timeline there; the view starts behind the car and follows it."""
+    import cv2
+
+    v = detail_viewer
+    page = browser.new_page()
+    page.goto(f"http://127.0.0.1:{v.port}")
+    page.get_by_text("Connected").wait_for(timeout=30000)
+    legend = page.locator(".plvo-legend")
+    legend.wait_for(timeout=10000)
+    text = legend.inner_text()
+    assert all(label in text for label, _ in LAYERS.values()), text
+    for key in ("map_lines", "est", "loops", "gt"):
+        style = legend.locator(f'[data-layer="{key}"] span').first.get_attribute("style").replace(" ", "")
+        assert _css(LAYER_COLORS[key]).replace(" ", "") in style, (key, style)
+    panel = _until(lambda: page.evaluate(_PANEL_IMAGES), lambda imgs: len(imgs) == 1)
+    assert len(panel) == 1 and panel[0][:2] == [v.limits.panel_image_width, 96], panel  # the fake's 1200 x 360
+    assert v.image_caption.content == "frame 0 (full detail)"
+
+    client = next(iter(v.server.get_clients().values()))
+    assert _wait(lambda: np.linalg.norm(client.camera.look_at - pose(0)[:3, 3]) < 12.5)  # behind the car, at it
+    v.slider.value = 16  # between detail frames: keyframe 15's thin image
+    page.get_by_text("frame 15 (its keyframe's, thinned)").wait_for(timeout=10000)
+    panel = _until(lambda: page.evaluate(_PANEL_IMAGES), lambda imgs: imgs and imgs[0][1] == 96)
+    x, y, w, h = (round(c) for c in panel[0][2:])
+    page.screenshot(path=str(tmp_path / "panel.png"))
+    shot = cv2.imread(str(tmp_path / "panel.png"))[y:y + h, x:x + w]
+    assert shot.size and shot.std() > 10, "the image panel looks blank"  # the fake's noise and white block
+    p16 = pose(16)[:3, 3]  # followed: the same view of the car as at frame 0 (18 m behind, 14 m above)
+    assert _wait(lambda: abs(np.linalg.norm(client.camera.position - p16) - np.hypot(18, 14)) < 0.5), \
+        client.camera.position
+
+    label = next(k for k, a in v._detail_options.items() if a == 21)  # keyframe 8, 1 in 4
+    page.get_by_role("combobox").click()
+    page.get_by_role("option", name=label).click()
+    assert _wait(lambda: v.detail_pick.value == label)
+    page.get_by_role("button", name="Go to these frames").click()
+    assert _wait(lambda: v.shown_frame == 21), v.shown_frame
+    page.get_by_text("full detail: keyframe 8 (1 in 4)").wait_for(timeout=10000)
+    assert v.image_caption.content == "frame 21 (full detail)"
     page.close()
 
 
