@@ -19,11 +19,12 @@ from plvo_app.rerun_recorder import ENTITIES, RerunOptions, RerunRecorder
 
 LONG_RUN = 4541  # frames of KITTI 00, the longest odometry sequence
 BUDGET_MB = 25.0  # a whole KITTI 00 at the default level: a file a person attaches to a bug report
-# The thin scan and image's share of it, a keyframe that has them (1 in RerunOptions.thin_every_keyframes = 2): the
+# The thin scan and image's share of it, a keyframe (RerunOptions.thin_every_keyframes = 1: every one has them): the
 # budget less the rest of a whole KITTI 00 at the default level (estimate_long_run on the synthetic town's 300 frames,
-# the larger of it and KITTI 04's: 20.1 MB, of which 9.2 MB detail with every event window used), over its ~1500
-# keyframes: 4.9 MB / 1514 = 3.3 kB a keyframe, 6.6 kB a thin one (measured: 6.1 kB on KITTI 04, 5.2 on the town)
-THIN_BYTES_PER_THIN_KEYFRAME = 6600
+# the larger of it and KITTI 04's: 15.8 MB, of which 6.8 MB detail with every event window used), over the 1514
+# keyframes KITTI 00 has at 04's rate: 9.2 MB / 1514 = 6.0 kB (measured: 5.45 kB on KITTI 04, 3.2 of scan and 2.3
+# of image; 4.7 on the town, whose whole estimate is 23.7 MB)
+THIN_BYTES_PER_THIN_KEYFRAME = 6000
 # The long run's estimate takes a frame's bytes from the second half of the run: over fewer frames the chunks'
 # schemas and the statics weigh in (6 KITTI frames made 58 MB of 51 frames' 23)
 MIN_FRAMES_TO_EXTRAPOLATE = 50
@@ -117,7 +118,7 @@ def estimate_long_run(sizes: dict[str, dict[str, Any]], paths: dict[str, Path], 
     fixed = max(s_full - slope_flat * n - _redraw_bytes(n, n_kf, opt), 0.0)
     summary_long = fixed + slope_flat * frames + _redraw_bytes(frames, round(kf_long), opt)
     # Detail, from the full level: bytes a frame of the entities written every frame, a keyframe of the others
-    # (their chunks' size, scaled by the file's compression)
+    # (their chunks' size, scaled by the file's compression); not the full level's own (the 3D scan)
     by = entity_bytes(paths["full"])
     ratio = sizes["full"]["bytes"] / max(sum(by.values()), 1)
     per_frame = per_kf = 0.0

@@ -1,18 +1,18 @@
 """Recording levels: which frames of a run get full detail in the .rrd (plvo_app.level_sizes measures their bytes).
 
 Every level keeps the whole-run picture at full length (camera pose, keyframes, graph with zeta, loops, timings and
-counts, the decision log, the map at keyframes, thinned) and, on every second keyframe, its scan and camera image
-thinned to a few kB (so that a replay shows the road everywhere, not only where the detail is), and the list of the
-frames that got detail and why (written on close: what a viewer offers to jump to). Detail (the image with every
-overlay, raw and merged segments, the projected scan and patches, planes, fitted lines, the scan, full map
-snapshots) is kept:
+counts, the decision log, the map at keyframes, thinned) and, on every keyframe, its scan and camera image thinned
+to a few kB (so that a replay shows the road everywhere, not only where the detail is), and the list of the frames
+that got detail and why (written on close: what a viewer offers to jump to). Detail (the image with every overlay,
+raw and merged segments, the projected scan and patches, planes, fitted lines, full map snapshots) is kept:
 
 - summary: only in the windows the user names (`--detail A:B`);
 - default: also on every `keyframe_stride`-th keyframe and in windows around events: tracking lost or
   re-initialised, a loop accepted or rejected after geometric verification, a discarded optimisation (a warning
   of the pipeline), a large correction of a keyframe by the back end, a slow frame (at most `max_event_windows`
   windows, `max_windows_per_kind` of each kind: the detail of a long run is bounded, the summary grows with it);
-- full: on every frame (as before levels existed).
+- full: on every frame (as before levels existed), with the keyframes' scans as 3D points too (the other levels
+  have the thin ones only).
 
 An event is known only once it happened, so the detail of the last `before` frames is held back in memory and
 written when an event wants it (else dropped): a window reaches `before` frames back and `after` frames forward.

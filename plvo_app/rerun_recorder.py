@@ -6,10 +6,10 @@ fixed budget, the per-keyframe debug layers logged on keyframes only. Which fram
 the recording level's (plvo_app.recording_levels): every entity of level "summary" is written at full length, those
 of level "detail" on the level's detail frames only (all frames at `--record full`), so that a whole sequence stays
 a file a person can attach to a bug report. Detail that stops is cleared (a Clear at the first frame without it), so
-a viewer never shows a stale image as the current one. Every second keyframe also gets its scan and image thinned to
-a few kB (summary level: world/lidar/thin/*, world/camera/image/keyframe), so that a replay shows the road on every
-frame (latest-at: the last such keyframe's), and on close the recording gets the list of its detail frames and why
-("detail", and the property plvo_detail the viewers read).
+a viewer never shows a stale image as the current one. Every keyframe also gets its scan and image thinned to a few
+kB (summary level: world/lidar/thin/*, world/camera/image/keyframe), so that a replay shows the road on every frame
+(latest-at: its keyframe's); the scan as points (level "full") is written at `--record full` only. On close the
+recording gets the list of its detail frames and why ("detail", and the property plvo_detail the viewers read).
 Scalars and the camera pose are buffered and sent as columns every 200 frames (and on close): one `rr.log` costs
 ~0.2 ms, and a frame has ~30 of them.
 """
@@ -80,7 +80,7 @@ class Entity(NamedTuple):
     what: str
     when: str  # "static", "frame" (every frame), "keyframe", "back end" (each back-end step), "event"
     level: str = "detail"  # "summary": at full length in every level; "detail": on the level's detail frames;
-    # "inputs": only in the --embed-inputs window
+    # "full": at the full level only; "inputs": only in the --embed-inputs window
 
 
 ENTITIES: dict[str, Entity] = {
@@ -106,7 +106,9 @@ ENTITIES: dict[str, Entity] = {
                "the keyframe's image at 1/thin_image_scale size, JPEG, scaled up to the pinhole's pixels and drawn "
                "under the full image: the camera panel between detail frames", "keyframe", "summary"),
         Entity("world/lidar", "Transform3D", "lidar pose T_world_velo at the keyframe", "keyframe", "summary"),
-        Entity("world/lidar/scan", "Points3D", "the keyframe scan, thinned, in the lidar frame", "keyframe"),
+        Entity("world/lidar/scan", "Points3D", "the keyframe scan, thinned, in the lidar frame; at the full level "
+               "only: at the others the thin scan of the same keyframe stands for it (3700 of its 4000 points on "
+               "KITTI, 3 kB instead of 60)", "keyframe", "full"),
         *[Entity(f"world/lidar/thin/{k}", "Transform3D and Pinhole (static), EncodedDepthImage",
                  f"the keyframe scan thinned for every level: depth image {k} of scene_common.RangeFaces (a 16-bit "
                  "PNG), drawn by Rerun as points", "keyframe", "summary") for k in range(RangeFaces().n)],
@@ -160,28 +162,34 @@ assert set(E.values()) - {E["thin"]} <= set(ENTITIES)
 @dataclass(frozen=True)
 class RerunOptions:
     jpeg_quality: int = 40  # KITTI images are noisy: 55 -> 40 saves ~20 % and still reads well
-    scan_max_points: int = 4000  # the 3D scan, thinned by stride (a KITTI scan has ~120k)
+    scan_max_points: int = 4000  # the 3D scan (full level), thinned by stride (a KITTI scan has ~120k)
     overlay_max_points: int = 1500  # the scan projected into the image
     trajectory_max_points: int = 1000
     # Scalars and camera poses are sent as columns this often (and on close): each send is a chunk of each of ~60
     # series, ~1 kB of schema apiece; every 25 frames that was 2.4 kB a frame, more than the data.
     scalar_flush_frames: int = 200
     detail: DetailOptions = DetailOptions()  # the recording level: which frames get the detail entities
-    # Outside detail frames the map at each keyframe is thinned to this (a KITTI window has ~3000 points, 31 kB)
-    map_summary_points: int = 100
-    map_summary_lines: int = 25
+    # Outside detail frames the map at each keyframe is thinned to this (a KITTI window has ~3000 points, 31 kB): a
+    # hint of where the landmarks are, every keyframe's thin scan showing the scene (100 points and 25 lines were
+    # 3.3 MB of a 4541-frame run on the synthetic town, these 1.8)
+    map_summary_points: int = 50
+    map_summary_lines: int = 12
     # Outside detail frames the keyframes and the estimate (they grow with the run) are redrawn this often
     summary_every_keyframes: int = 20
     graph_summary_edges: int = 500  # and the whole graph then thinned to this (loops all kept)
-    # Every thin_every_keyframes-th keyframe, at every level: its scan as depth images (the number of faces is
-    # ENTITIES') and its image at 1/thin_image_scale size. Sized by the default level's budget, 25 MB for a whole
-    # KITTI 00 (4541 frames, ~1500 keyframes; plvo_app.level_sizes): ~3.5 kB of scan and ~2.4 kB of image a KITTI
-    # keyframe, every second one (estimated so, every keyframe at 1/4 and 1.5 degrees, ~10 kB, came to ~34 MB; at
-    # 1/5 and 2 degrees to ~29).
+    # Every thin_every_keyframes-th keyframe (every one), at every level: its scan as depth images (the number of
+    # faces is ENTITIES') and its image at 1/thin_image_scale size, JPEG quality thin_image_quality. Sized by the
+    # default level's budget, 25 MB for a whole KITTI 00 (4541 frames; plvo_app.level_sizes): ~3.2 kB of scan and
+    # ~2.3 kB of image a KITTI keyframe (2.4 and 2.3 on the synthetic town), estimated at 22.4 MB from KITTI 04 and
+    # 23.7 from the town's 300 frames (at its rate 1665 keyframes; every event window used). Every keyframe as every
+    # second one was (quality 40, the faces' depth at 0.1 m) came to ~29 MB on the town; of that, the faces' 0.2 m
+    # steps past 5 m and PNG strategy took 0.5 MB, quality 35 0.3 (hard to tell from 40 at the viewer's 320 pixels;
+    # 30 shows blocks), the 3D scan written at the full level only 2.6 (the thin one stands for it) and the map
+    # thinned to 50 points 1.6. (Every keyframe at 1/4 and 1.5 degrees, ~10 kB, came to ~34 MB.)
     thin_scan: RangeFaces = RangeFaces()
     thin_image_scale: int = 5
-    thin_image_quality: int = 40
-    thin_every_keyframes: int = 2
+    thin_image_quality: int = 35
+    thin_every_keyframes: int = 1
     embed_inputs: tuple[int, int] | None = None  # frames [A, B) whose raw inputs are embedded (plvo reproduce)
     compact_on_close: bool | None = None  # merge the chunks on close (plvo_app.rrd_compact); None: unless "full"
 
@@ -431,10 +439,13 @@ class RerunRecorder:
     # ---- detail: written now, held back for an event, or cleared -----------------------------------------
     def _log(self, path: str, archetype: Any) -> None:
         """Write `archetype` (or what a Lazy makes) to `path` at the current frame, if the recording level wants it
-        there; else hold it back, a Lazy unmade."""
+        there; else hold it back, a Lazy unmade (an entity of level "full" below the full level: dropped)."""
         if archetype is None:
             return
-        if ENTITIES[path].level == "detail" and not self._policy.want(self._at):
+        level = ENTITIES[path].level
+        if level == "full" and not self._policy.everything:
+            return
+        if level == "detail" and not self._policy.want(self._at):
             self._policy.defer(self._at, (path, archetype))
             return
         archetype = archetype() if isinstance(archetype, _Lazy) else archetype
@@ -589,7 +600,7 @@ class RerunRecorder:
                 rr.EncodedImage.from_fields(draw_order=-20.0, media_type="image/jpeg"), static=True)
 
     def _log_thin(self, shown: np.ndarray | None) -> None:
-        """The keyframe's thin scan and image (every level, every thin_every_keyframes-th keyframe)."""
+        """The keyframe's thin scan and image (every level, every thin_every_keyframes-th keyframe: every one)."""
         frame = self._frame
         n, self._n_kf = self._n_kf, self._n_kf + 1
         if frame is None or n % max(1, self.opt.thin_every_keyframes):
@@ -610,8 +621,8 @@ class RerunRecorder:
         scan = frame.scan[thin(len(frame.scan), self.opt.scan_max_points), :3]
         self._log(E["lidar"], _transform(self._T_world_cam @ frame.calib.T_cam_velo))
         self._log_thin(frame.image if frame.color is None else cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR))
-        self._log(E["scan"], rr.Points3D(scan.astype(np.float32), colors=depth_colors(np.linalg.norm(scan, axis=1)),
-                                            radii=rr.Radius.ui_points(1.5)))
+        self._log(E["scan"], _Lazy(lambda: rr.Points3D(scan.astype(np.float32), radii=rr.Radius.ui_points(1.5),
+                                                       colors=depth_colors(np.linalg.norm(scan, axis=1)))))
         self._overlay_pending = True  # the DepthDebug brings the projected scan; else it is made at the step's end
 
     def _log_scan_overlay(self, frame: Frame) -> None:

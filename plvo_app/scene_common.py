@@ -89,16 +89,20 @@ class RangeFaces:
 
     Why images rather than thinned points: a point costs 12 bytes as Rerun's float32 positions and LZ4 compresses
     them hardly at all (a KITTI scan voxel-thinned to 3 m kept 1369 points in 16 kB), while the PNGs of the depth
-    images hold ~3700 KITTI points in ~3.5 kB (2 degrees, 10 cm; 6500 in 6.4 kB at 1.5 degrees, 5 cm), and Rerun
-    draws a depth image under a pinhole as points in 3D. What is lost: a point's direction is its pixel's (up to
-    half a pixel off: 0.9 m at 50 m) and its depth is rounded to `unit`; of the points of a pixel only the nearest
-    is kept."""
+    images hold ~3700 KITTI points in ~3.0 kB (2 degrees; 6500 in 6.4 kB at 1.5 degrees, 5 cm), and Rerun draws a
+    depth image under a pinhole as points in 3D. What is lost: a point's direction is its pixel's (up to half a
+    pixel off: 0.9 m at 50 m) and its depth is rounded to `unit`, to 2 units beyond `coarse_beyond` metres (there half
+    a pixel is about a unit wide: the depth errs by no more than the direction; on KITTI 04 the points' distance
+    to the scan went from a median 0.100 m to 0.105, 95th percentile 0.45 m either way, and the PNGs 7 % smaller);
+    of the points of a pixel only the nearest is kept. Each PNG is the smallest of zlib's default, filtered and
+    run-length strategies (lossless: another 8 % on KITTI 04, 2 % on the synthetic town)."""
 
     n: int = 4
     deg: float = 2.0
     unit: float = 0.1
     up: float = 15.0  # covers Velodyne HDL-64 (+2..-25), HDL-32 (+10..-30) and VLP-16 (+-15)
     down: float = 30.0
+    coarse_beyond: float = 5.0  # metres; half a 2-degree pixel is 0.09 m wide at 5 m
 
     @property
     def K(self) -> np.ndarray:
@@ -123,25 +127,39 @@ class RangeFaces:
         a = 2 * np.pi * k / self.n
         return np.column_stack([[np.sin(a), -np.cos(a), 0.0], [0.0, 0.0, -1.0], [np.cos(a), np.sin(a), 0.0]])
 
+    def counts(self, z: np.ndarray) -> np.ndarray:
+        """Depths (m) -> the PNG's uint16 counts: `unit` steps, 2 of them beyond `coarse_beyond` (0: no return)."""
+        z = np.asarray(z, float)
+        far = z > self.coarse_beyond
+        c = np.where(far, 2 * np.round(z / (2 * self.unit)), np.round(z / self.unit))
+        return np.clip(c, 1, 65535).astype(np.uint16)
+
     def encode(self, scan: np.ndarray) -> list[bytes]:
         """(N,3) lidar-frame points -> one 16-bit PNG a face (0: no return in that pixel)."""
         K, (w, h) = self.K, self.size
         pts = np.asarray(scan, float)[:, :3]
+        # Each face projects only the points of its sector (and a margin: its image reaches a little past it)
+        margin = np.hypot(pts[:, 0], pts[:, 1]) * np.cos(min(np.pi / self.n + np.radians(3.0 * self.deg), np.pi))
         out = []
         for k in range(self.n):
-            cam = pts @ self.R_velo_face(k)
-            ok = cam[:, 2] > 0.5
-            cam = cam[ok]
+            a = 2 * np.pi * k / self.n
+            cam = pts[pts[:, 0] * np.cos(a) + pts[:, 1] * np.sin(a) > margin] @ self.R_velo_face(k)
+            cam = cam[cam[:, 2] > 0.5]
             u = np.floor(cam[:, 0] / cam[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
             v = np.floor(cam[:, 1] / cam[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
             inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            z, pix = cam[inside, 2], v[inside] * w + u[inside]
-            order = np.argsort(z, kind="stable")
-            pix, first = np.unique(pix[order], return_index=True)  # the nearest point of each pixel
+            # the nearest point of each pixel: the smallest of its (pixel, count) keys
+            key = np.sort((v[inside] * w + u[inside]) << 16 | self.counts(cam[inside, 2]))
+            first = np.diff(key >> 16, prepend=-1) != 0
             img = np.zeros(h * w, np.uint16)
-            img[pix] = np.clip(np.round(z[order][first] / self.unit), 1, 65535).astype(np.uint16)
-            out.append(cv2.imencode(".png", img.reshape(h, w), [cv2.IMWRITE_PNG_COMPRESSION, 9])[1].tobytes())
+            img[key[first] >> 16] = key[first] & 0xFFFF
+            out.append(min((cv2.imencode(".png", img.reshape(h, w), [cv2.IMWRITE_PNG_COMPRESSION, 9,
+                                                                      cv2.IMWRITE_PNG_STRATEGY, strategy])[1]
+                            for strategy in _PNG_STRATEGIES), key=len).tobytes())
         return out
+
+
+_PNG_STRATEGIES = (cv2.IMWRITE_PNG_STRATEGY_DEFAULT, cv2.IMWRITE_PNG_STRATEGY_FILTERED, cv2.IMWRITE_PNG_STRATEGY_RLE)
 
 
 def depth_image_points(png: bytes, K: np.ndarray, meter: float) -> np.ndarray:

@@ -215,7 +215,7 @@ class ViserViewer:
             return ""
         n, w = sum(b - a for a, b, _ in detail), len(detail)
         return (f"{n} frame{'s' * (n != 1)} in {w} window{'s' * (w != 1)} {'have' if n != 1 else 'has'} every layer "
-                "(the full scan, the image with its overlays); the others show their keyframe's thinned scan and "
+                "(the image with its overlays, the whole map); the others show their keyframe's thinned scan and "
                 "image.")
 
     def jump_to_detail(self, label: str) -> None:

@@ -115,7 +115,7 @@ def test_replay_store_honours_the_clears(default):
 
 def test_map_thinned_outside_detail_full_inside(default):
     sizes = {f: len(row["Points3D:positions"]) for f, row in default.rows("/world/map/points")}
-    kf_detail = set(default.frames("/world/lidar/scan"))
+    kf_detail = set(default.frames("/world/camera/image/lidar"))  # the projected scan: detail keyframes
     outside = [f for f in KFS if f not in kf_detail]
     assert outside and all(sizes[f] <= RerunOptions().map_summary_points for f in outside)
     assert all(sizes[f] == 200 * (KFS.index(f) + 1) for f in kf_detail)  # the fake's full window map
@@ -127,6 +127,16 @@ def test_summary_level_has_detail_only_in_the_users_window(summary):
     for path in DETAIL_KEYFRAME:
         assert summary.frames(f"/{path}") == [21], path
     assert summary.properties["plvo:record_level"] == "summary"
+
+
+def test_the_3d_scan_at_the_full_level_only(default, summary):
+    """Below the full level every keyframe's thin scan stands for the 3D one, also on detail frames (the full
+    level's is checked in tests/test_app_recorder.py)."""
+    full_only = [p for p, e in ENTITIES.items() if e.level == "full"]
+    assert full_only == ["world/lidar/scan"]
+    for data in (default, summary):
+        assert "/world/lidar/scan" not in data.entities
+        assert data.frames("/world/lidar/thin/0") == KFS
 
 
 def test_event_windows_are_bounded():

@@ -1,8 +1,9 @@
 """A recording at the default level replays with something on every frame: the car, the trajectory and the map
-everywhere, every second keyframe's scan and image thinned (so the road is there between the detail frames), the
-full ones only where the level put detail, the list of those frames and why, and Rerun's camera panel showing the
-thin image. Checked on the fake run (tests/app_fakes.py) read back, and on real KITTI 04: its bytes a keyframe and
-the estimate for a whole KITTI 00 against the 25 MB budget (plvo_app.level_sizes)."""
+everywhere, every keyframe's scan and image thinned (so the road is there between the detail frames), the full image
+only where the level put detail (the 3D scan only at the full level: the thin one stands for it), the list of those
+frames and why, and Rerun's camera panel showing the thin image. Checked on the fake run (tests/app_fakes.py) read
+back, and on real KITTI 04: its bytes a keyframe and the estimate for a whole KITTI 00 against the 25 MB budget
+(plvo_app.level_sizes)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,6 @@ from plvo_app.rrd_reader import read_rrd
 
 N = 30
 KFS = keyframe_frames(N)  # every 3 frames and LOST_FRAME
-THIN_KFS = KFS[::RerunOptions().thin_every_keyframes]
 FACES = [p for p in ENTITIES if p.startswith("world/lidar/thin/")]
 
 
@@ -75,25 +75,25 @@ def test_the_car_the_trajectory_and_the_map_on_every_frame(recorded):
         np.testing.assert_allclose(end, pose(f)[:3, 3], atol=1e-4)
 
 
-def test_thin_scan_and_image_on_keyframes_full_ones_on_detail_frames(recorded):
+def test_thin_scan_and_image_on_every_keyframe_full_image_on_detail_frames(recorded):
     data, store = recorded.data, recorded.store
-    assert len(FACES) == 4
+    assert RerunOptions().thin_every_keyframes == 1 and len(FACES) == 4
     for path in [*FACES, "world/camera/image/keyframe", "world/lidar"]:
         assert ENTITIES[path].level == "summary", path
     for path in FACES:
-        assert data.frames(f"/{path}") == THIN_KFS, path
-    assert data.frames("/world/camera/image/keyframe") == THIN_KFS
-    assert data.frames("/world/lidar") == KFS  # the scans' pose on every keyframe
+        assert data.frames(f"/{path}") == KFS, path
+    assert data.frames("/world/camera/image/keyframe") == KFS
+    assert data.frames("/world/lidar") == KFS  # the scans' pose
     detail = data.frames("/world/camera/image")  # the full image: the detail frames
     assert 0 < len(detail) < N and LOST_FRAME in detail
-    assert data.frames("/world/lidar/scan") == [f for f in KFS if f in detail]
+    assert {f for f in KFS if f in detail} <= set(data.frames("/world/camera/image/lidar"))  # the projected scan
+    assert ENTITIES["world/lidar/scan"].level == "full" and "/world/lidar/scan" not in data.entities
     for f in range(N):
         img, scan = store.source("image", f), store.source("scan", f)
-        assert img is not None and scan is not None, f
-        # the image: the frame's own on a detail frame, else the last thin one
-        want = ("full", f) if f in detail else ("thin", max(k for k in THIN_KFS if k <= f))
-        assert img == want, (f, img)
-        assert scan[1] >= max(k for k in THIN_KFS if k <= f)  # never older than the last thin scan
+        last_kf = max(k for k in KFS if k <= f)
+        # the image: the frame's own on a detail frame, else its keyframe's thin one; the scan: its keyframe's thin one
+        assert img == (("full", f) if f in detail else ("thin", last_kf)), (f, img)
+        assert scan == ("thin", last_kf), (f, scan)
     small = cv2.imdecode(np.frombuffer(store.latest("image", 13), np.uint8), cv2.IMREAD_UNCHANGED)
     assert small.shape[:2] == (72, 240)  # the fake's 1200 x 360 at 1/5
 
@@ -104,7 +104,7 @@ def test_the_thin_scan_is_the_scan(recorded):
     from scipy.spatial import cKDTree
 
     store = recorded.store
-    f = next(k for k in THIN_KFS if store.source("scan", k) == ("thin", k))
+    f = KFS[2]
     world = transform_points(pose(f) @ CALIB.T_cam_velo, recorded.scans[f])
     pts, colors = store.latest("scan", f)
     d, _ = cKDTree(world).query(pts)
@@ -161,15 +161,15 @@ def kitti_levels(kitti_root, tmp_path_factory):
 
 
 def test_kitti_default_level_within_the_budget(kitti_levels):
-    """The default level's thin scan and image fit their share of the 25 MB a whole KITTI 00 may weigh, and so does
-    the whole estimate (with every event window used)."""
+    """Every keyframe's thin scan and image fit their share of the 25 MB a whole KITTI 00 may weigh, and so does the
+    whole estimate (with every event window used)."""
     from plvo_app.level_sizes import BUDGET_MB, THIN_BYTES_PER_THIN_KEYFRAME, thin_bytes
 
     levels = kitti_levels
     assert levels["summary"]["bytes"] < levels["default"]["bytes"] < levels["full"]["bytes"]
     thin, n_thin = thin_bytes(levels["default"]["path"])
     n_kf = levels["default"]["keyframes"]
-    assert n_thin == len(range(0, n_kf, RerunOptions().thin_every_keyframes))
+    assert n_thin == n_kf  # every keyframe
     assert thin / n_thin <= THIN_BYTES_PER_THIN_KEYFRAME, thin / n_thin
     est = levels["default"]["long_run"]
     print(f"\nKITTI 04, {levels['default']['frames']} frames, {n_kf} keyframes: summary "
@@ -186,10 +186,24 @@ def test_kitti_default_level_replays_every_frame(kitti_levels):
     frames = list(range(51))
     kfs = sorted({f for f, _, t in data.log if t.startswith(f"frame {f}: keyframe ")})
     assert data.frames("/world/camera") == frames and kfs[0] == 0
-    assert data.frames("/world/camera/image/keyframe") == kfs[::2]
-    assert data.frames("/world/lidar/thin/0") == kfs[::2]
+    assert data.frames("/world/camera/image/keyframe") == kfs
+    assert data.frames("/world/lidar/thin/0") == kfs
+    assert data.frames("/world/lidar/scan") == []  # the 3D scan: at the full level only
     detail = data.frames("/world/camera/image")
     assert detail == [0] and [w[:2] for w in store.detail] == [(0, 1)]  # keyframe 0; no event in 04's 51 frames
     for f in frames:
         scan = store.latest("scan", f)
         assert store.latest("image", f) is not None and scan is not None and len(scan[0]) > 2000, f
+
+
+def test_the_faces_depth_steps():
+    """A face's depth is in 0.1 m steps to 5 m, 0.2 m steps beyond (half a 2-degree pixel is 0.09 m wide at 5 m:
+    the depth errs no more than the direction), 0 where no point is."""
+    from plvo_app.scene_common import RangeFaces, depth_image_points
+
+    faces = RangeFaces()
+    z = np.array([0.02, 1.23, 4.97, 5.04, 5.13, 12.37, 12.43, 7000.0])
+    np.testing.assert_array_equal(faces.counts(z), [1, 12, 50, 50, 52, 124, 124, 65535])
+    scan = np.array([[3.0, 0.0, 0.0], [3.2, 0.0, 0.0], [20.07, 2.0, -1.0]])  # two in a pixel: the nearer is kept
+    pts = depth_image_points(faces.encode(scan)[0], faces.K, 1 / faces.unit)
+    assert sorted(np.round(pts[:, 2], 2)) == [3.0, 20.0]
