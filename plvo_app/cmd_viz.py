@@ -62,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "folder, .mcap) or a plain images/ + scans/ folder; default $KITTI_ROOT, else the embedded "
                    "synthetic town")
     p.add_argument("--seq", default=None, help="odometry sequence (04) or raw drive (2011_09_26_drive_0009); "
-                   "default 00 with a root")
+                   "with a root alone, its only sequence (several are listed)")
     p.add_argument("--frames", default=None, metavar="A:B", help="frames A to B-1 (e.g. 0:100); default all")
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
     p.add_argument("--ablation", default=None, help=f"one of {', '.join(ABLATIONS)}")
