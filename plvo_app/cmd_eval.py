@@ -20,23 +20,12 @@ from collections.abc import Callable
 from plvo_app import cmd_eval_stages, eval_metric
 
 
-def __getattr__(name: str):
-    # `cmd_eval.evaluate_sequence`: a test stands a failing one in for it here; imported on first use, so that
-    # `plvo eval --help` loads no numpy
-    if name == "evaluate_sequence":
-        from plvo.eval.kitti_metric import evaluate_sequence
-
-        return evaluate_sequence
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     eval_metric.add_metric_arguments(p)
 
 
 def _run_metric(args: argparse.Namespace) -> int:
-    evaluate = globals().get("evaluate_sequence") or __getattr__("evaluate_sequence")
-    return eval_metric.run_metric(args, evaluate)
+    return eval_metric.run_metric(args)
 
 
 def _add_run_arguments(p: argparse.ArgumentParser) -> None:

@@ -15,7 +15,6 @@ import argparse
 import json
 import math
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -332,10 +331,10 @@ def _write_plots(runs: list[Run], plot_dir: Path) -> dict[str, Path]:
         raise OutputError(f"--plot {plot_dir}: cannot write the plots ({exc.strerror or exc})") from None
 
 
-def run_metric(args: argparse.Namespace, evaluate: Callable[..., SequenceEvaluation]) -> int:
-    """The command: read and pair every estimate, evaluate each (with `evaluate`, plvo.eval.kitti_metric's
-    evaluate_sequence), print, plot."""
+def run_metric(args: argparse.Namespace) -> int:
+    """The command: read and pair every estimate, evaluate each, print, plot."""
     from plvo.eval.associate import read_pose_file, with_times
+    from plvo.eval.kitti_metric import evaluate_sequence
 
     short = parse_lengths(args.short)
     if not (math.isfinite(args.max_dt) and args.max_dt > 0):
@@ -351,7 +350,7 @@ def run_metric(args: argparse.Namespace, evaluate: Callable[..., SequenceEvaluat
     runs = []
     for est in estimates:
         gt_path, pairing = pair_estimate(est, gt, args.frames, args.max_dt)
-        ev = evaluate(pairing.gt, pairing.est, name=est.name, short_lengths=short)
+        ev = evaluate_sequence(pairing.gt, pairing.est, name=est.name, short_lengths=short)
         runs.append(Run(est, gt_path, pairing, ev))
     if args.json:
         out = [run_json(r) for r in runs]

@@ -306,13 +306,13 @@ def test_no_command_replaces_an_output_that_exists(synth_seq, tmp_path, capsys):
 
 def test_unexpected_error_in_any_command_is_one_line(tmp_path, capsys, monkeypatch):
     row = fault("unexpected-other")
-    from plvo_app import cmd_eval
+    from plvo.eval import kitti_metric
     from plvo_app.cli import main
 
     def bug(*args, **kwargs):
         raise ZeroDivisionError("injected eval bug")
 
-    monkeypatch.setattr(cmd_eval, "evaluate_sequence", bug)
+    monkeypatch.setattr(kitti_metric, "evaluate_sequence", bug)
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     import tempfile
 
