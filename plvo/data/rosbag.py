@@ -33,6 +33,7 @@ from plvo.data.ros_messages import (
     image_array,
     stamp_ns,
 )
+from plvo.data.trajectory import pair_nearest
 from plvo.errors import CalibrationError, DatasetError
 from plvo.types import Frame
 
@@ -102,14 +103,6 @@ def _camera_info(connections: list, image_topic: str):
         if topic.rsplit("/", 1)[0] == namespace or topic == image_topic.rsplit("/", 2)[0] + "/camera_info":
             return topic
     return infos[0] if len(infos) == 1 else None
-
-
-def pair_nearest(image_ns: np.ndarray, scan_ns: np.ndarray, max_dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """For each image stamp the index of the nearest scan stamp (scan_ns sorted) and whether it is within max_dt_ns."""
-    right = np.clip(np.searchsorted(scan_ns, image_ns), 0, len(scan_ns) - 1)
-    left = np.clip(right - 1, 0, len(scan_ns) - 1)
-    nearest = np.where(np.abs(scan_ns[left] - image_ns) <= np.abs(scan_ns[right] - image_ns), left, right)
-    return nearest, np.abs(scan_ns[nearest] - image_ns) <= max_dt_ns
 
 
 class RosbagDataset(SelectedFrames):

@@ -144,3 +144,12 @@ def write_poses(path: PathLike, poses: np.ndarray, times: np.ndarray, fmt: str =
         write_tum(path, times, poses)
     else:
         raise TrajectoryError(f"{path}: pose format {fmt!r} unknown (one of {', '.join(POSE_FORMATS)})")
+
+
+def pair_nearest(queries: np.ndarray, stamps: np.ndarray, max_dt) -> tuple[np.ndarray, np.ndarray]:
+    """For each query time the index of the nearest of the sorted `stamps` (the earlier on a tie) and whether it is
+    within max_dt (a bag's images and scans, an estimate's poses and the truth's)."""
+    right = np.clip(np.searchsorted(stamps, queries), 0, len(stamps) - 1)
+    left = np.clip(right - 1, 0, len(stamps) - 1)
+    nearest = np.where(np.abs(stamps[left] - queries) <= np.abs(stamps[right] - queries), left, right)
+    return nearest, np.abs(stamps[nearest] - queries) <= max_dt

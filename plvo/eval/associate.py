@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plvo.data.trajectory import _read_rows, read_kitti_poses, read_tum
+from plvo.data.trajectory import _read_rows, pair_nearest, read_kitti_poses, read_tum
 from plvo.errors import TrajectoryError
 
 PathLike = str | os.PathLike[str]
@@ -125,11 +125,9 @@ def associate(est_times: np.ndarray, gt_times: np.ndarray, max_dt: float = MAX_D
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     order = np.argsort(gt_times, kind="stable")
     g = gt_times[order]
-    right = np.clip(np.searchsorted(g, est_times), 0, len(g) - 1)
-    left = np.clip(right - 1, 0, len(g) - 1)
-    nearest = np.where(np.abs(g[left] - est_times) <= np.abs(g[right] - est_times), left, right)
+    nearest, within = pair_nearest(est_times, g, max_dt)
     dt = np.abs(g[nearest] - est_times)
-    cand = np.flatnonzero(dt <= max_dt)
+    cand = np.flatnonzero(within)
     by_truth = cand[np.lexsort((dt[cand], nearest[cand]))]  # per truth pose, its closest estimate pose first
     _, first = np.unique(nearest[by_truth], return_index=True)
     i_est = np.sort(by_truth[first])
