@@ -50,7 +50,7 @@ from plvo_app.run_outputs import (
     tracked_summary,
     write_json,
 )
-from plvo_app.run_summary import SUMMARY_FILE, point_latest, summary_lines
+from plvo_app.run_summary import POSES_FILE, SUMMARY_FILE, TRUTH_FILE, point_latest, summary_lines
 from plvo_app.source_args import add_source_arguments, source_options
 from plvo_app.terminal import progress_enabled
 
@@ -219,7 +219,7 @@ def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
 
 
 # what a run writes in its results folder
-RESULTS_FILES = ("poses.txt", "truth.txt", "summary.json", "timings.json", "config.toml", "run.log")
+RESULTS_FILES = (POSES_FILE, TRUTH_FILE, SUMMARY_FILE, "timings.json", "config.toml", "run.log")
 
 
 def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Path]]:
@@ -281,10 +281,10 @@ def offset_line(summary: dict) -> str:
 def _write_poses(out: Path, system, dataset, fmt: str = "kitti"):
     """poses.txt, and truth.txt beside it where the data has ground truth -> (poses, truth or None), cam0."""
     from plvo.data.trajectory import write_poses
-    from plvo_app.run_summary import TRUTH_FILE, truth_cam0
+    from plvo_app.run_summary import truth_cam0
 
     poses, truth = system.poses_cam0(dataset.frame_indices), truth_cam0(dataset)
-    for name, what in (("poses.txt", poses), (TRUTH_FILE, truth)):
+    for name, what in ((POSES_FILE, poses), (TRUTH_FILE, truth)):
         if what is None:
             continue
         try:
@@ -297,7 +297,7 @@ def _write_poses(out: Path, system, dataset, fmt: str = "kitti"):
 def _write_summary(outs: Outputs, system, dataset, status: str, reason: str, fps: float, fmt: str,
                    scored) -> dict:
     """summary.json: how the run ended, how fast, and with truth how accurate (plvo_app.run_summary)."""
-    from plvo_app.run_summary import SUMMARY_FILE, TRUTH_FILE, accuracy, build_summary
+    from plvo_app.run_summary import accuracy, build_summary
 
     figures = None
     if scored is not None and scored[1] is not None:
@@ -306,7 +306,7 @@ def _write_summary(outs: Outputs, system, dataset, status: str, reason: str, fps
     summary = build_summary(
         run=outs.run, sequence=dataset.sequence, status=status, reason=reason, frame_indices=dataset.frame_indices,
         frames_done=system.frames_done, frames_tracked=tracked, fps=fps,
-        poses_file=outs.out / "poses.txt" if scored is not None else None, pose_format=fmt,
+        poses_file=outs.out / POSES_FILE if scored is not None else None, pose_format=fmt,
         truth_source=getattr(dataset, "truth_source", None),
         truth_file=outs.out / TRUTH_FILE if figures is not None else None, figures=figures)
     write_json(outs.out / SUMMARY_FILE, summary)
@@ -486,8 +486,8 @@ def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog
     except PlvoError as exc:  # the recording's last write failed
         if error is None:
             status, reason, error, scored = "failed", str(exc), exc, None
-            (outs.out / "poses.txt").unlink(missing_ok=True)
-            (outs.out / "truth.txt").unlink(missing_ok=True)
+            (outs.out / POSES_FILE).unlink(missing_ok=True)
+            (outs.out / TRUTH_FILE).unlink(missing_ok=True)
     summary: dict = {}
     try:
         write_json(outs.out / "timings.json", _timings(system, status, reason, fps, len(dataset)))

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from plvo.errors import ArgumentsError, OutputError, PlvoError, TrajectoryError
+from plvo_app.run_summary import POSES_FILE, SUMMARY_FILE, TRUTH_FILE
 
 if TYPE_CHECKING:
     import numpy as np
@@ -100,7 +101,7 @@ class Run:
 
 
 def _summary(folder: Path) -> dict[str, Any] | None:
-    path = folder / "summary.json"
+    path = folder / SUMMARY_FILE
     if not path.is_file():
         return None
     try:
@@ -122,7 +123,7 @@ def _summary_frames(path: Path, summary: dict[str, Any], n_poses: int) -> np.nda
                                                for f in frames):
         raise TrajectoryError(f"{path}: 'frame_indices' must be a list of frame numbers (integers >= 0)")
     if len(frames) != n_poses:
-        raise TrajectoryError(f"{path}: 'frame_indices' lists {len(frames)} frames, but {path.parent / 'poses.txt'} "
+        raise TrajectoryError(f"{path}: 'frame_indices' lists {len(frames)} frames, but {path.parent / POSES_FILE} "
                               f"has {n_poses} poses")
     return np.asarray(frames, dtype=np.int64)
 
@@ -132,18 +133,18 @@ def read_results_folder(folder: Path) -> Estimate:
     from plvo.eval.associate import read_pose_file
 
     summary = _summary(folder)
-    poses_file = folder / "poses.txt"
+    poses_file = folder / POSES_FILE
     if not poses_file.is_file():
         status = summary.get("status") if summary else None
         why = (f"the run's status is {status!r} in summary.json; poses.txt is written when a run completes"
                if status else "not a plvo results folder, or its run did not complete")
         raise TrajectoryError(f"{folder}: no poses.txt ({why})")
     poses = read_pose_file(poses_file)
-    frames = _summary_frames(folder / "summary.json", summary, len(poses)) if summary else None
+    frames = _summary_frames(folder / SUMMARY_FILE, summary, len(poses)) if summary else None
     name = summary.get("run") if summary else None
-    truth = folder / "truth.txt"
+    truth = folder / TRUTH_FILE
     return Estimate(name if isinstance(name, str) and name else folder.name, folder, poses, frames,
-                    str(folder / "summary.json"), truth if truth.is_file() else None)
+                    str(folder / SUMMARY_FILE), truth if truth.is_file() else None)
 
 
 def read_estimate(path: Path, frames_arg: str | None) -> Estimate:

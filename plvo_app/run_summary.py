@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+# the names of a results folder's files, for the run that writes them and `plvo eval metric --est` that reads them
+POSES_FILE = "poses.txt"
 SUMMARY_FILE = "summary.json"
 TRUTH_FILE = "truth.txt"
 LATEST_LINK = "latest"
