@@ -23,13 +23,14 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from plvo.config import SystemConfig
+from plvo.data.offset_pairing import OffsetPaired
 from plvo.data.prefetch import prefetched
 from plvo.depth.extract import extract_depth
 from plvo.features.extract import extract_features
@@ -47,7 +48,7 @@ from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
 from plvo.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
-from plvo.workers import START_TIMEOUT_S, OrderedWorker
+from plvo.workers import START_TIMEOUT_S, OrderedWorker, libraries_single_threaded
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,10 @@ class StepOutput:
     tracking: TrackingResult
     keyframe: KeyframeResult | None
     timing: TimingResult
+
+
+def _nothing() -> None:
+    pass
 
 
 class System:
@@ -90,6 +95,7 @@ class System:
         # the last keyframe's back-end and loop jobs, read from the map at its frame and submitted at the next
         # frame, once the motion to that frame completes its scan's deskewing (plvo.lidar.deskew.Sweep)
         self._pending: tuple[KeyframeInfo, Any, Any] | None = None
+        self._threads_back: Callable[[], None] = _nothing  # the libraries' threads as they were (close())
         if calib is not None:
             self._build(calib)
 
@@ -139,7 +145,11 @@ class System:
         return frame if self._lookahead is None else self._lookahead.prepare(frame)
 
     def read_ahead(self, dataset) -> Iterator[Frame]:
-        """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead)."""
+        """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead); with
+        a stated camera-lidar time offset, each image paired with the scan taken nearest its instant
+        (plvo.data.offset_pairing)."""
+        if self.config.crosscheck.time_offset_s:
+            dataset = OffsetPaired(dataset, self.config.crosscheck.time_offset_s)
         if self._lookahead is None:  # the stages are built at the first step: prepared from then on
             return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS,
                               timeout_s=self._read_timeout_s)
@@ -181,6 +191,10 @@ class System:
             self._features = OrderedWorker("features", FeaturesCore, frontend.feature_settings, mode,
                                            niceness=LOOKAHEAD_NICENESS, timeout_s=b.worker_timeout_s)
             self._workers.append(self._features)
+        if b.concurrent and mode == "process":
+            # this process shares the cores with its workers as they share them with each other: single-threaded
+            # libraries here too (the lidar check's open3d, the tracker's OpenCV), until close() gives them back
+            self._threads_back = libraries_single_threaded()
         self._lookahead = Lookahead(frontend, self._features, self._read_timeout_s)
 
     @property
@@ -302,6 +316,8 @@ class System:
         for worker in self._workers:
             worker.close()
         self.recorder.close()
+        self._threads_back()
+        self._threads_back = _nothing
 
     # ---- the trajectory (plvo.frame_poses) ---------------------------------------------------------------
     @property

@@ -109,18 +109,30 @@ class _Capture(logging.Handler):
         self.records.append((record.name, record.levelno, record.getMessage()))
 
 
-def _libraries_single_threaded() -> None:
-    """Limit open3d and OpenCV (imported by the worker's core) to the calling thread. A worker process shares the
-    machine with the tracker and the other workers, so a library's second thread finds no idle core: it adds CPU,
-    not speed. Measured on KITTI 04 (alone, on an idle 2-core machine): a keyframe's registration 60 ms wall and 88 ms
-    CPU with open3d's default two threads, 76 and 76 with one; a frame's feature extraction 37.5-38.9 ms CPU with
-    OpenCV's two threads, 36.3-37.4 with one (the same features, bit for bit). The deployed run is CPU-bound."""
+def libraries_single_threaded() -> Callable[[], None]:
+    """Limit open3d and OpenCV (those imported) to the calling thread -> a function that gives them back the
+    threads they had. A worker process shares the machine with the tracker and the other workers, so a library's
+    second thread finds no idle core: it adds CPU, not speed. Measured on KITTI 04 (alone, on an idle 2-core
+    machine): a keyframe's registration 60 ms wall and 88 ms CPU with open3d's default two threads, 76 and 76 with
+    one; a frame's feature extraction 37.5-38.9 ms CPU with OpenCV's two threads, 36.3-37.4 with one (the same
+    features, bit for bit). The deployed run is CPU-bound. The tracker's own process, beside its worker processes,
+    is limited alike for as long as its System runs (plvo.system)."""
+    restore: list[Callable[[], None]] = []
     o3d = sys.modules.get("open3d")
     if o3d is not None and hasattr(o3d.utility, "set_max_threads"):
+        before = o3d.utility.get_max_threads()
         o3d.utility.set_max_threads(1)
+        restore.append(lambda: o3d.utility.set_max_threads(before))
     cv2 = sys.modules.get("cv2")
     if cv2 is not None:
+        n = cv2.getNumThreads()
         cv2.setNumThreads(1)
+        restore.append(lambda: cv2.setNumThreads(n))
+
+    def give_back() -> None:
+        for r in restore:
+            r()
+    return give_back
 
 
 # The terminal's signals, sent to every process of its foreground group: Ctrl-C, Ctrl-\ and a closed terminal's
@@ -179,7 +191,7 @@ def _serve(jobs: Connection, outputs: Connection, name: str, factory: Callable, 
         _send(outputs, (_Failure(None, exc), capture.records))
         os._exit(1)  # a start that failed is no clean exit: the parent names the failure it was sent
     lower_priority(niceness)  # after the imports, which the caller waits for; threads made later inherit it
-    _libraries_single_threaded()
+    libraries_single_threaded()
     _send(outputs, (_READY, capture.records))
     capture.records = []
     while True:

@@ -142,7 +142,7 @@ class RangeFaces:
     def encode(self, scan: np.ndarray) -> list[bytes]:
         """(N,3) lidar-frame points -> one 16-bit PNG a face (0: no return in that pixel)."""
         K, (w, h) = self.K, self.size
-        pts = np.asarray(scan, float)[thin(len(scan), self.max_points), :3]
+        pts = np.asarray(scan[thin(len(scan), self.max_points), :3], float)
         # Each face projects only the points of its sector (and a margin: its image reaches a little past it)
         margin = np.hypot(pts[:, 0], pts[:, 1]) * np.cos(min(np.pi / self.n + np.radians(3.0 * self.deg), np.pi))
         out = []
@@ -158,13 +158,14 @@ class RangeFaces:
             first = np.diff(key >> 16, prepend=-1) != 0
             img = np.zeros(h * w, np.uint16)
             img[key[first] >> 16] = key[first] & 0xFFFF
-            out.append(min((cv2.imencode(".png", img.reshape(h, w), [cv2.IMWRITE_PNG_COMPRESSION, 9,
-                                                                      cv2.IMWRITE_PNG_STRATEGY, strategy])[1]
-                            for strategy in _PNG_STRATEGIES), key=len).tobytes())
+            out.append(cv2.imencode(".png", img.reshape(h, w), _PNG_RLE)[1].tobytes())
         return out
 
 
-_PNG_STRATEGIES = (cv2.IMWRITE_PNG_STRATEGY_DEFAULT, cv2.IMWRITE_PNG_STRATEGY_FILTERED, cv2.IMWRITE_PNG_STRATEGY_RLE)
+# A face is mostly empty pixels between runs of returns: zlib's run-length strategy packs it as well as the best of
+# the default, filtered and run-length strategies (KITTI 04's keyframes: 3165 bytes against 3158 a keyframe) in a
+# tenth of their time (0.23 ms against 5 ms a keyframe, in the tracking thread)
+_PNG_RLE = [cv2.IMWRITE_PNG_COMPRESSION, 9, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
 
 
 def depth_image_points(png: bytes, K: np.ndarray, meter: float) -> np.ndarray:

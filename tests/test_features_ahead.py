@@ -127,7 +127,12 @@ def test_finish_collects_each_frame_one_frame_after_it_was_started():
 def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth_sequence_factory, monkeypatch):
     """The deployed mode extracts features in a process of its own (plvo.features.worker): the tracker's process
     extracts none, and the poses equal those of the same workers run as threads (features extracted in the reading
-    thread), to the last bit."""
+    thread), to the last bit. The tracker's process, sharing the cores with its worker processes, runs open3d and
+    OpenCV single-threaded while the System runs (plvo.workers.libraries_single_threaded), and gets their threads
+    back at its close."""
+    import cv2
+    import open3d
+
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
     from plvo.run import run_system
@@ -135,10 +140,16 @@ def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     calls = _extraction_threads(monkeypatch)
+    mine = open3d.utility.get_max_threads(), cv2.getNumThreads()
     system = System(SystemConfig(), calib=ds.calib)  # the defaults: concurrent workers in processes
     system.wait_ready()
     assert len(system.worker_pids) == 3  # back end, loop closer, features
+    # the tracker's process shares the cores with its workers: its libraries single-threaded while the System runs
+    assert (open3d.utility.get_max_threads(), cv2.getNumThreads()) == (1, 1)
     in_process = run_system(system, ds)
+    assert (open3d.utility.get_max_threads(), cv2.getNumThreads()) == mine  # given back at close
+    if (os.cpu_count() or 1) > 1:
+        assert min(mine) > 1  # the limits are not the machine's defaults (this could not fail on one core)
     assert calls == []
     assert len(in_process.timings["features"]) == len(ds) and min(in_process.timings["features"]) > 0
 
