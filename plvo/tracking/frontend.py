@@ -683,8 +683,9 @@ class Frontend:
         time, the tracker's last motion (this frame's, or after a loss the prediction's) over the time since the
         previous frame (None at the first frame); the motion after it is the next frame's (`sweep_after`). None when
         the scan is not deskewed.
-        A stated camera-lidar time offset (crosscheck.time_offset_s) adds to every return's time: the scan, taken
-        that long after the image, is moved to the image's instant, for the depth priors and the workers."""
+        A stated camera-lidar time offset adds the frame's delay (`_delay_s`: what the pairing by the offset left,
+        or the offset whole) to every return's time: the scan, taken that long after the image, is moved to the
+        image's instant, for the depth priors and the workers."""
         deskewed = needs_deskew(frame, self.cfg.registration.deskew)
         delay = self._delay_s(frame)
         if not deskewed and not delay:
