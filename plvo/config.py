@@ -158,8 +158,7 @@ class CrossCheckConfig:
     still_m: float = 0.05  # the lidar moved less than this: the car stands (a repeated image is then no fault)
     gap_factor: float = 1.5  # a frame interval this many times the previous one: frames were dropped
     # Camera-lidar time offset (plvo.tracking.time_offset): the lidar's scans taken time_offset_s after the images
-    # (stated by the user where known; each image is then paired with the scan taken nearest its instant, moved by
-    # what is left, plvo.data.offset_pairing); estimated from the checked
+    # (stated by the user where known; each scan is then moved to its image's instant); estimated from the checked
     # intervals' rotations within +-offset_max_s and named when observable (sigma below offset_sigma_s) and over
     # offset_warn_s from the stated one.
     time_offset_s: float = 0.0

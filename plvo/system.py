@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 
 from plvo.config import SystemConfig
-from plvo.data.offset_pairing import OffsetPaired
 from plvo.data.prefetch import prefetched
 from plvo.depth.extract import extract_depth
 from plvo.features.extract import extract_features
@@ -145,11 +144,7 @@ class System:
         return frame if self._lookahead is None else self._lookahead.prepare(frame)
 
     def read_ahead(self, dataset) -> Iterator[Frame]:
-        """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead); with
-        a stated camera-lidar time offset, each image paired with the scan taken nearest its instant
-        (plvo.data.offset_pairing)."""
-        if self.config.crosscheck.time_offset_s:
-            dataset = OffsetPaired(dataset, self.config.crosscheck.time_offset_s)
+        """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead)."""
         if self._lookahead is None:  # the stages are built at the first step: prepared from then on
             return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS,
                               timeout_s=self._read_timeout_s)

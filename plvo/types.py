@@ -60,10 +60,6 @@ class Frame:
     (plvo.lidar.deskew); True when the source delivers it motion-compensated or taken at one instant.
     features: the tracker's features of `image`, extracted ahead of tracking by `System.prepare` (while earlier
     frames are tracked), with features_s the seconds it took; None: the tracker extracts them itself.
-    scan_delay_s: how long after the image the scan was taken, where the frame was paired by a stated camera-lidar
-    time offset (plvo.data.offset_pairing: what is left of the offset once each image has its nearest scan); the
-    tracker moves the scan by it to the image's instant. None: not so paired (the stated offset, if any, applies
-    whole).
     """
 
     index: int
@@ -77,7 +73,6 @@ class Frame:
     scan_compensated: bool = True
     features: FeatureSet | None = None
     features_s: float = 0.0
-    scan_delay_s: float | None = None
 
 
 @dataclass(frozen=True)

@@ -67,9 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
     p.add_argument("--ablation", default=None, help=f"one of {', '.join(ABLATIONS)}")
     p.add_argument("--time-offset", type=float, default=None, metavar="S",
-                   help="the lidar's scans are taken S seconds after the images they come with (negative: "
-                        "before); each image gets the scan taken nearest its instant, moved by what is left "
-                        "(crosscheck.time_offset_s; a run names an offset it finds)")
+                   help="the lidar's scans are taken S seconds after the images (negative: before); each scan is "
+                        "moved to its image's instant (crosscheck.time_offset_s; a run names an offset it finds)")
     p.add_argument("--rrd", type=Path, help="recording path; default recordings/<seq>_<time>.rrd")
     p.add_argument("--out", type=Path, help="results folder; default results/<seq>_<time>/")
     p.add_argument("--no-serve", action="store_true", help="do not start the viser web viewer")

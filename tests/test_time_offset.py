@@ -1,7 +1,6 @@
 """The camera-lidar time offset estimated from the data (plvo.tracking.time_offset): recovered from rotations
 alone on a turn, withheld where the motion cannot tell it; on a synthetic town whose scans are paired a frame
-late (0.1 s) it is named with the flag to state it, and stated, each image is paired with the scan of its instant
-and the trajectory is as good as without the offset."""
+late (0.1 s) it is named with the flag to state it, and stated, the trajectory is as good as without the offset."""
 
 from __future__ import annotations
 
@@ -87,17 +86,13 @@ def test_late_scans_are_named_and_corrected_when_stated(late_scans, caplog):
     cfg = dataclasses.replace(cfg, crosscheck=dataclasses.replace(cfg.crosscheck, time_offset_s=found["offset_s"]))
     stated = run_dataset(ds, cfg)
     assert stated.trust["time_offset"]["found"] is None  # nothing more to name
-    # each image paired with the scan of its instant (the previous frame's; the first moved by the motion): no
-    # scan named repeated although the first two frames share one
-    assert "scan repeated" not in stated.trust["findings"], stated.trust["findings"]
-    # the scans paired right give 0.06 m over these 60 frames; stated, 0.16 m: the first frame's scan, taken 0.1 s
-    # after its image with no motion known yet to move it by, leaves the first landmarks' depths 1.5 m off
-    assert _max_error(ds, stated.poses) < 0.25, _max_error(ds, stated.poses)
-    # the issue's measure: the ATE within 2x of the run with the scans paired right; paired by the offset, the same
-    # (60 frames on the AMD EPYC machine: stated 0.0168, paired right 0.0170, unstated 0.248 m; each scan moved by
-    # the whole offset instead, as plvo did before the pairing, 0.025 m: 1.47x)
+    # the issue's measure: within 2x of the run with the scans paired right, in ATE and in the largest error (here,
+    # 60 frames on the AMD EPYC machine: ATE stated 0.0167, paired right 0.0170, unstated 0.214 m; largest error
+    # 0.053, 0.056, 0.95 m)
     aligned = run_dataset(open_dataset(paired_right, "00", slice(0, 60)), SystemConfig())
     gt = np.asarray(ds.gt_T_world_cam, float)
     ate = {name: absolute_trajectory_error(gt, np.asarray(r.poses, float)).rmse_m
            for name, r in (("unstated", out), ("stated", stated), ("paired right", aligned))}
-    assert ate["stated"] < 1.3 * ate["paired right"] < ate["unstated"], ate
+    assert ate["stated"] < 2 * ate["paired right"] < ate["unstated"], ate
+    worst = {name: _max_error(ds, r.poses) for name, r in (("stated", stated), ("paired right", aligned))}
+    assert worst["stated"] < 2 * worst["paired right"], worst

@@ -1,11 +1,14 @@
 """Copies of a KITTI odometry clip with one fault each, made of links to the real files (nothing copied but the
-text files): frozen images, repeated scans, scans a frame ahead of the images, dropped frames."""
+text files and a generated sequence's scene description): frozen images, repeated scans, scans a frame ahead of the
+images, dropped frames."""
 
 from __future__ import annotations
 
 import os
 import shutil
 from pathlib import Path
+
+from plvo.data.kitti import SYNTH_MARKER
 
 
 def variant(src_root: Path, seq: str, dst_root: Path, n_frames: int, image_of=None, scan_of=None,
@@ -19,6 +22,10 @@ def variant(src_root: Path, seq: str, dst_root: Path, n_frames: int, image_of=No
     (dst / "image_0").mkdir(parents=True)
     (dst / "velodyne").mkdir()
     shutil.copy(src / "calib.txt", dst / "calib.txt")
+    scene = src / SYNTH_MARKER
+    if scene.is_file():  # a generated sequence's: how its lidar sweeps and its elevation error, read with the scans
+        (dst / SYNTH_MARKER).parent.mkdir()
+        shutil.copy(scene, dst / SYNTH_MARKER)
     times = (src / "times.txt").read_text().split()
     poses = (src_root / "poses" / f"{seq}.txt").read_text().splitlines()
     kept = [i for i in range(n_frames) if keep is None or keep(i)]

@@ -229,7 +229,7 @@ class Frontend:
                              f"{self._prev_dt:.3f} s before; the motion model stretched over the gap")
         T_pred = base @ velocity
         repeated_scan = cc.enabled and same_scan(frame.scan, last.scan)
-        if repeated_scan and frame.scan_delay_s == last.scan_delay_s:  # else paired so by a stated offset, no fault
+        if repeated_scan:
             self.checks.note(frame.index, "scan repeated", f"the scan of frame {last.index} again: no keyframe on it "
                              "and no check against the lidar")
         lidar_ok = self._lidar is not None and not repeated_scan
@@ -343,17 +343,7 @@ class Frontend:
     def _lidar_motion(self, src: Frame, dst: Frame, guesses: list[np.ndarray], timings: dict[str, float],
                       thorough: bool = True) -> LidarMotion:
         assert self._lidar is not None
-        d_src, d_dst = self._delay_s(src), self._delay_s(dst)
-        if d_src == d_dst or not self._prev_dt:
-            motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
-        else:
-            # Scans paired by a stated offset, taken d_src and d_dst after their images (at a run's first frames
-            # one scan serves two images): the lidar's interval is not the images'; the motion model's velocity over
-            # the differences takes one to the other
-            A, B = (se3.exp(se3.log(self._velocity) * (d / self._prev_dt)) for d in (d_src, d_dst))
-            motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan),
-                                        [se3.inv(A) @ g @ B for g in guesses], thorough)
-            motion = dataclasses.replace(motion, T_camprev_camcur=A @ motion.T_camprev_camcur @ se3.inv(B))
+        motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
         timings["crosscheck"] = timings.get("crosscheck", 0.0) + motion.time_s
         return motion
 
@@ -370,11 +360,8 @@ class Frontend:
             T_src = self.map.keyframe_pose(self._last_kf_id)
             src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
         lidar = self._lidar_motion(src, frame, guesses, timings, thorough=doubted)
-        # an interval whose scans were taken at other delays after their images says nothing of the offset
-        timed_alike = self._delay_s(src) == self._delay_s(frame)
         if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
-            if timed_alike:
-                self._estimate_offset(frame, src.time, lidar)
+            self._estimate_offset(frame, src.time, lidar)
             return None
         if not doubted:  # a quick look disagreed: a thorough one before the camera is called wrong
             lidar = self._lidar_motion(src, frame, guesses, timings)
@@ -390,8 +377,7 @@ class Frontend:
                 # turn's start and end (the time offset's estimate then names it); the camera is kept
                 self.checks.note(frame.index, "rotation disagrees with the lidar's", f"{ddeg:.1f} deg since frame "
                                  f"{src.index} (translation {dm:.2f} m): the camera's kept")
-                if timed_alike:
-                    self._estimate_offset(frame, src.time, lidar)
+                self._estimate_offset(frame, src.time, lidar)
                 return None
             return self._overrule(frame, feats, base, T_src, lidar, f"the camera's motion {dm:.2f} m / {ddeg:.1f} deg "
                                   f"from the lidar's since frame {src.index}", timings)
@@ -413,7 +399,7 @@ class Frontend:
         if self.offset_found is not None or n % (5 if n < 50 else 25):
             return
         est = self.offset.estimate()
-        if est is None or not est.observable or abs(est.offset_s - self._delay_s(frame)) <= cc.offset_warn_s:
+        if est is None or not est.observable or abs(est.offset_s - self._offset_s) <= cc.offset_warn_s:
             return
         self.offset_found = est
         what = "after" if est.offset_s > 0 else "before"
@@ -683,17 +669,15 @@ class Frontend:
         time, the tracker's last motion (this frame's, or after a loss the prediction's) over the time since the
         previous frame (None at the first frame); the motion after it is the next frame's (`sweep_after`). None when
         the scan is not deskewed.
-        A stated camera-lidar time offset adds the frame's delay (`_delay_s`: what the pairing by the offset left,
-        or the offset whole) to every return's time: the scan, taken that long after the image, is moved to the
-        image's instant, for the depth priors and the workers."""
+        A stated camera-lidar time offset (crosscheck.time_offset_s) adds to every return's time: the scan, taken
+        that long after the image, is moved to the image's instant, for the depth priors and the workers."""
         deskewed = needs_deskew(frame, self.cfg.registration.deskew)
-        delay = self._delay_s(frame)
-        if not deskewed and not delay:
+        if not deskewed and not self._offset_s:
             return None
         dt = None if self._prev_time is None else frame.time - self._prev_time
         before = None if dt is None or not dt > 0 else \
             twist_from_motion(self._velocity, dt, np.asarray(self.calib.T_cam_velo, float))
-        if not delay:
+        if not self._offset_s:
             return Sweep(before, None, frame.scan_time)
         if not deskewed:
             times = np.zeros(len(frame.scan))
@@ -701,12 +685,7 @@ class Frontend:
             times = azimuth_times(frame.scan) if frame.scan_time is None else np.asarray(frame.scan_time, float)
         # at the first frame no motion is known yet: the workers' scan then moves with the motion to the next
         # frame (`sweep_after`), the depth priors' stays as taken
-        return Sweep(before, None, times + delay)
-
-    def _delay_s(self, frame: Frame) -> float:
-        """How long after its image the frame's scan was taken, as stated: what is left of the stated offset where
-        the frame was paired by it (Frame.scan_delay_s), else the stated offset whole."""
-        return self._offset_s if frame.scan_delay_s is None else frame.scan_delay_s
+        return Sweep(before, None, times + self._offset_s)
 
     def sweep_after(self, kf: KeyframeInfo, frame: Frame, T_world_cam: np.ndarray) -> Sweep | None:
         """Keyframe kf's sweep completed with the motion from it to the next frame (tracked at T_world_cam), from
