@@ -111,28 +111,41 @@ class _Capture(logging.Handler):
 
 def libraries_single_threaded() -> Callable[[], None]:
     """Limit open3d and OpenCV (those imported) to the calling thread -> a function that gives them back the
-    threads they had. A worker process shares the machine with the tracker and the other workers, so a library's
-    second thread finds no idle core: it adds CPU, not speed. Measured on KITTI 04 (alone, on an idle 2-core
-    machine): a keyframe's registration 60 ms wall and 88 ms CPU with open3d's default two threads, 76 and 76 with
-    one; a frame's feature extraction 37.5-38.9 ms CPU with OpenCV's two threads, 36.3-37.4 with one (the same
-    features, bit for bit). The deployed run is CPU-bound. The tracker's own process, beside its worker processes,
-    is limited alike for as long as its System runs (plvo.system)."""
-    restore: list[Callable[[], None]] = []
-    o3d = sys.modules.get("open3d")
-    if o3d is not None and hasattr(o3d.utility, "set_max_threads"):
-        before = o3d.utility.get_max_threads()
-        o3d.utility.set_max_threads(1)
-        restore.append(lambda: o3d.utility.set_max_threads(before))
-    cv2 = sys.modules.get("cv2")
-    if cv2 is not None:
-        n = cv2.getNumThreads()
-        cv2.setNumThreads(1)
-        restore.append(lambda: cv2.setNumThreads(n))
+    threads they had once every limit taken in this process is given back. A worker process shares the machine
+    with the tracker and the other workers, so a library's second thread finds no idle core: it adds CPU, not speed.
+    Measured on KITTI 04 (alone, on an idle 2-core machine): a keyframe's registration 60 ms wall and 88 ms CPU with
+    open3d's default two threads, 76 and 76 with one; a frame's feature extraction 37.5-38.9 ms CPU with OpenCV's
+    two threads, 36.3-37.4 with one (the same features, bit for bit). The deployed run is CPU-bound. The tracker's
+    own process, beside its worker processes, is limited alike for as long as a System runs there (plvo.system)."""
+    with _LIMITS_LOCK:
+        if not _LIMITS:
+            o3d, cv2 = sys.modules.get("open3d"), sys.modules.get("cv2")
+            if o3d is not None and hasattr(o3d.utility, "set_max_threads"):
+                _THREADS_BEFORE["open3d"] = o3d.utility.get_max_threads()
+                o3d.utility.set_max_threads(1)
+            if cv2 is not None:
+                _THREADS_BEFORE["cv2"] = cv2.getNumThreads()
+                cv2.setNumThreads(1)
+        token = object()
+        _LIMITS.add(token)
 
     def give_back() -> None:
-        for r in restore:
-            r()
+        with _LIMITS_LOCK:
+            if token not in _LIMITS:
+                return
+            _LIMITS.discard(token)
+            if _LIMITS:  # another System of this process still runs
+                return
+            if "open3d" in _THREADS_BEFORE:
+                sys.modules["open3d"].utility.set_max_threads(_THREADS_BEFORE.pop("open3d"))
+            if "cv2" in _THREADS_BEFORE:
+                sys.modules["cv2"].setNumThreads(_THREADS_BEFORE.pop("cv2"))
     return give_back
+
+
+_LIMITS: set[object] = set()  # the limits taken and not given back (one a running System)
+_LIMITS_LOCK = threading.Lock()
+_THREADS_BEFORE: dict[str, int] = {}
 
 
 # The terminal's signals, sent to every process of its foreground group: Ctrl-C, Ctrl-\ and a closed terminal's

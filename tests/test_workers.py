@@ -310,3 +310,26 @@ def test_idle_work_is_a_worker_process_s_alone(mode):
         assert [w.take() for _ in range(3)] == [(1, 0), (3, 0), (6, 0)]
     finally:
         w.close()
+
+
+def test_the_libraries_get_their_threads_back_when_the_last_limit_is_given_back():
+    """Two Systems of one process (an evaluation runs several) each limit the libraries while they run: the first
+    to close must not give the second its threads back; the last gives back what the process had."""
+    import os
+
+    import cv2
+    import open3d
+
+    from plvo.workers import libraries_single_threaded
+
+    mine = open3d.utility.get_max_threads(), cv2.getNumThreads()
+    first = libraries_single_threaded()
+    second = libraries_single_threaded()
+    assert (open3d.utility.get_max_threads(), cv2.getNumThreads()) == (1, 1)
+    first()
+    first()  # giving back twice is once
+    assert (open3d.utility.get_max_threads(), cv2.getNumThreads()) == (1, 1)
+    second()
+    assert (open3d.utility.get_max_threads(), cv2.getNumThreads()) == mine
+    if (os.cpu_count() or 1) > 1:
+        assert min(mine) > 1  # the limits are not the machine's defaults (this test could not fail on one core)
