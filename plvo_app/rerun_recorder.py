@@ -183,9 +183,9 @@ class RerunOptions:
     # ~2.3 kB of image a KITTI keyframe (2.4 and 2.3 on the synthetic town), estimated at 22.4 MB from KITTI 04 and
     # 23.7 from the town's 300 frames (at its rate 1665 keyframes; every event window used). Every keyframe as every
     # second one was (quality 40, the faces' depth at 0.1 m) came to ~29 MB on the town; of that, the faces' 0.2 m
-    # steps past 5 m and PNG strategy took 0.5 MB, quality 35 0.3 (hard to tell from 40 at the viewer's 320 pixels;
-    # 30 shows blocks), the 3D scan written at the full level only 2.6 (the thin one stands for it) and the map
-    # thinned to 50 points 1.6. (Every keyframe at 1/4 and 1.5 degrees, ~10 kB, came to ~34 MB.)
+    # steps past 5 m and the PNGs' run-length strategy took 0.5 MB, quality 35 0.3 (hard to tell from 40 at the
+    # viewer's 320 pixels; 30 shows blocks), the 3D scan written at the full level only 2.6 (the thin one stands
+    # for it) and the map thinned to 50 points 1.6. (Every keyframe at 1/4 and 1.5 degrees, ~10 kB, came to ~34 MB.)
     thin_scan: RangeFaces = RangeFaces()
     thin_image_scale: int = 5
     thin_image_quality: int = 35

@@ -94,8 +94,9 @@ class RangeFaces:
     pixel off: 0.9 m at 50 m) and its depth is rounded to `unit`, to 2 units beyond `coarse_beyond` metres (there half
     a pixel is about a unit wide: the depth errs by no more than the direction; on KITTI 04 the points' distance
     to the scan went from a median 0.100 m to 0.105, 95th percentile 0.45 m either way, and the PNGs 7 % smaller);
-    of the points of a pixel only the nearest is kept. Each PNG is the smallest of zlib's default, filtered and
-    run-length strategies (lossless: another 8 % on KITTI 04, 2 % on the synthetic town)."""
+    of the points of a pixel only the nearest is kept. Each PNG is packed by zlib's run-length strategy (lossless:
+    3165 bytes a KITTI 04 keyframe, against 3327 by the default strategy, 3213 filtered, 3158 the smallest of the
+    three each time, which took ten times as long; _PNG_RLE)."""
 
     n: int = 4
     deg: float = 2.0
