@@ -166,6 +166,9 @@ class CrossCheckConfig:
     offset_max_s: float = 0.2
     offset_sigma_s: float = 0.01
     offset_warn_s: float = 0.02
+    # A found offset is used by running again from the first frame with it stated (the run loops of plvo.run and
+    # plvo-viz): moving the scans mid-run mixed the frames before it with those after (docs/crosscheck.md)
+    restart_on_offset: bool = True
 
 
 @dataclass(frozen=True)

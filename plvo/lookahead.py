@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Iterator
+from collections.abc import Generator
 
 from plvo.data.prefetch import prefetched
 from plvo.features.worker import FeaturesJob
@@ -25,7 +25,7 @@ class Lookahead:
     def __init__(self, frontend: Frontend | None, features: OrderedWorker | None, timeout_s: float):
         self._frontend, self._features, self._timeout_s = frontend, features, timeout_s
 
-    def frames(self, dataset) -> Iterator[Frame]:
+    def frames(self, dataset) -> Generator[Frame, None, None]:
         if self._features is None:
             return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS, timeout_s=self._timeout_s)
         return prefetched(dataset, prepare=self.start, finish=self.finish, niceness=LOOKAHEAD_NICENESS,

@@ -49,6 +49,10 @@ class Recorder(Protocol):
     def on_run_start(self, info: RunInfo) -> None:
         """Once, before the first frame."""
 
+    def on_restart(self, info: RunInfo) -> None:
+        """The run starts again from its first frame (plvo.system.System.restart): what was recorded of the frames
+        so far is superseded; `info` carries the new config and, in extra["restart"], why and at which frame."""
+
     def on_frame(self, frame: Frame) -> None:
         """A new input frame (image and scan) is about to be processed; sets the current time."""
 
@@ -63,6 +67,9 @@ class NullRecorder:
     """Does nothing: the default when no viewer is wanted."""
 
     def on_run_start(self, info: RunInfo) -> None:
+        pass
+
+    def on_restart(self, info: RunInfo) -> None:
         pass
 
     def on_frame(self, frame: Frame) -> None:
@@ -95,6 +102,9 @@ class FanOut:
 
     def on_run_start(self, info: RunInfo) -> None:
         self._each("on_run_start", info)
+
+    def on_restart(self, info: RunInfo) -> None:
+        self._each("on_restart", info)
 
     def on_frame(self, frame: Frame) -> None:
         self._each("on_frame", frame)

@@ -43,15 +43,43 @@ def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
     return run_system(System(config, recorder, calib=dataset.calib), dataset, progress)
 
 
-def run_system(system: System, dataset, progress: Callable[[int], object] | None = None) -> RunOutput:
+def step_through(system: System, dataset, progress: Callable[[int], object] | None = None,
+                 at: list[int] | None = None) -> None:
     """Step `system` (made for this dataset, not yet stepped) through every frame, each read while the one before
-    is tracked, let its workers finish, and close it -> RunOutput."""
+    is tracked, then let its workers finish (the System stays open). When the frames show that the run's config is
+    wrong in a way a restart mends (System.restart_wanted: a camera-lidar time offset found), the System starts
+    again from the first frame with the mended config, once; the frames so far count for nothing.
+
+    progress: called with the number of frames done (1 a frame; minus the frames dropped at a restart: a tqdm
+    bar's update); at: holds the index of the frame being stepped (what an error names). System.restarts says
+    why and where a run started again."""
+    while True:
+        frames = system.read_ahead(dataset)
+        try:
+            for frame in frames:
+                if at is not None:
+                    at[0] = frame.index
+                system.step(frame)
+                if progress is not None:
+                    progress(1)
+                config = system.restart_wanted
+                if config is not None:
+                    break
+            else:
+                break
+        finally:
+            frames.close()  # the reading thread stops
+        if progress is not None:
+            progress(-system.frames_done)
+        system.restart(config)
+    system.finish()
+
+
+def run_system(system: System, dataset, progress: Callable[[int], object] | None = None) -> RunOutput:
+    """Step `system` (made for this dataset, not yet stepped) through every frame (step_through), let its workers
+    finish, and close it -> RunOutput."""
     try:
-        for frame in system.read_ahead(dataset):
-            system.step(frame)
-            if progress is not None:
-                progress(1)
-        system.finish()
+        step_through(system, dataset, progress)
         finished_at = time.perf_counter()
         poses = system.poses_cam0(dataset.frame_indices)
     finally:

@@ -20,16 +20,17 @@ The System imports no viewer: recorders (Rerun, viser) are handed in from `plvo_
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from plvo.config import SystemConfig
+from plvo.config import SystemConfig, config_to_dict, config_to_toml
 from plvo.data.prefetch import prefetched
 from plvo.depth.extract import extract_depth
 from plvo.features.extract import extract_features
@@ -73,8 +74,16 @@ class System:
         """calib: the sequence's calibration, when known before the first frame: the stages and the worker
         processes are then made at once, so that the workers start up (~1-2 s of imports on two cores) while the
         caller sets up its recorders and viewer, instead of while the first frames are tracked."""
-        self.config = config
         self.recorder = recorder if recorder is not None else NullRecorder()
+        self.restarts: list[dict[str, Any]] = []  # each restart from the first frame: why, at which frame (restart())
+        self._info: RunInfo | None = None  # what the recorders were told at start()
+        self._fresh(config)
+        if calib is not None:
+            self._build(calib)
+
+    def _fresh(self, config: SystemConfig) -> None:
+        """The state of a run not yet stepped (no stages built)."""
+        self.config = config
         self.record = RunRecord(defaultdict(list))
         self.timings = self.record.timings  # stage -> seconds, one entry a time it ran
         self.frames_done = 0
@@ -95,8 +104,6 @@ class System:
         # frame, once the motion to that frame completes its scan's deskewing (plvo.lidar.deskew.Sweep)
         self._pending: tuple[KeyframeInfo, Any, Any] | None = None
         self._threads_back: Callable[[], None] = _nothing  # the libraries' threads as they were (close())
-        if calib is not None:
-            self._build(calib)
 
     @property
     def map(self) -> LandmarkMap | None:
@@ -123,7 +130,49 @@ class System:
 
     def start(self, info: RunInfo) -> None:
         """Start the recorders, then wait for the workers to be ready (see `wait_ready`)."""
+        self._info = info
         self.recorder.on_run_start(info)
+        self.wait_ready()
+
+    # ---- a run started again (plvo.run.step_through) -------------------------------------------------------
+    @property
+    def restart_wanted(self) -> SystemConfig | None:
+        """The config to run again with from the first frame, when the frames so far found that the run's own is
+        wrong in a way a restart mends: a camera-lidar time offset found while none (or another) was stated
+        (crosscheck.restart_on_offset; at most one restart a run). None: go on."""
+        frontend = self._frontend
+        cc = self.config.crosscheck
+        if frontend is None or frontend.offset_found is None or not cc.restart_on_offset or self.restarts:
+            return None
+        offset = float(frontend.offset_found.offset_s)
+        return dataclasses.replace(self.config, crosscheck=dataclasses.replace(cc, time_offset_s=offset))
+
+    def restart(self, config: SystemConfig) -> None:
+        """Start the run again from its first frame with `config`: the workers closed and made anew, the map, the
+        trajectory and the timings of the frames so far dropped; the recorders told (Recorder.on_restart) with the
+        run's info carrying the new config and why. The caller then steps every frame again from the first."""
+        frontend, calib = self._frontend, self._calib
+        assert frontend is not None and calib is not None, "restart() of a System never stepped"
+        frontend.checks.flush()  # the episodes open at this frame (the offset's own) are warned now
+        found = frontend.offset_found
+        why = {"at_frame": self._frame_now, "frames_before": self.frames_done,
+               "reason": "camera-lidar time offset",
+               "time_offset_s": round(config.crosscheck.time_offset_s, 4),
+               "sigma_s": None if found is None else round(float(found.sigma_s), 4)}
+        for worker in self._workers:
+            worker.close()
+        self._threads_back()
+        self.restarts.append(why)
+        self._fresh(config)
+        self._build(calib)
+        if self._info is not None:
+            self._info = dataclasses.replace(self._info, config=config_to_dict(config), extra={
+                **self._info.extra, "config_toml": config_to_toml(config), "restart": why})
+            self.recorder.on_restart(self._info)
+        # after the recorders' restart: the warning is in the recording of the run that counts
+        log.warning("frame %d: starting again from the first frame with the scans moved %.3f s to the images' "
+                    "instants (crosscheck.time_offset_s: the offset found there)", why["at_frame"],
+                    why["time_offset_s"])
         self.wait_ready()
 
     def wait_ready(self) -> None:
@@ -143,7 +192,7 @@ class System:
         before the stages are built (no calib given to the System) the frame as it is."""
         return frame if self._lookahead is None else self._lookahead.prepare(frame)
 
-    def read_ahead(self, dataset) -> Iterator[Frame]:
+    def read_ahead(self, dataset) -> Generator[Frame, None, None]:
         """The dataset's frames as the System is meant to take them: read and prepared ahead (plvo.lookahead)."""
         if self._lookahead is None:  # the stages are built at the first step: prepared from then on
             return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS,
@@ -332,6 +381,8 @@ class System:
         if self._frontend is None:
             return {}
         out = self._frontend.checks.summary()
+        if self.restarts:
+            out["restarts"] = list(self.restarts)
         offset = self._frontend.offset
         est = None if offset is None else offset.estimate()
         out["time_offset"] = {"stated_s": self.config.crosscheck.time_offset_s,

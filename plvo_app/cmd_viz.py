@@ -271,6 +271,11 @@ def trust_line(system) -> str:
 
 def offset_line(summary: dict) -> str:
     """A found camera-lidar time offset, as the run's last word on it (empty when none was found)."""
+    for why in summary.get("restarts", ()):
+        what = "after" if why["time_offset_s"] > 0 else "before"
+        return (f"\ncamera-lidar time offset: the scans are taken {abs(why['time_offset_s']):.3f} s {what} the images "
+                f"(found at frame {why['at_frame']}); the run started again from its first frame with them moved "
+                "to the images' instants")
     found = (summary.get("time_offset") or {}).get("found")
     if not found:
         return ""
@@ -314,19 +319,18 @@ def _write_summary(outs: Outputs, system, dataset, status: str, reason: str, fps
 
 
 def _run_frames(system, dataset, at: list[int]) -> float:
-    """Step through the dataset (each frame read while the previous one is tracked) with a progress bar, then let
-    the workers finish; returns frames a second over all of it (what a user waits for). `at` holds the frame being
-    processed. Ctrl-C propagates."""
+    """Step through the dataset (plvo.run.step_through: each frame read while the previous one is tracked, the
+    run started again from its first frame where the System finds it must) with a progress bar, then let the
+    workers finish; returns frames a second over all of it (what a user waits for, a restart's frames included in
+    the time). `at` holds the frame being processed. Ctrl-C propagates."""
     from tqdm import tqdm
+
+    from plvo.run import step_through
 
     t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True,
               disable=not progress_enabled()) as bar:
-        for frame in system.read_ahead(dataset):
-            at[0] = frame.index
-            system.step(frame)
-            bar.update(1)
-    system.finish()  # the back end and loop closer finish their keyframes; their results are recorded
+        step_through(system, dataset, bar.update, at)
     return system.frames_done / max(time.perf_counter() - t0, 1e-9)
 
 

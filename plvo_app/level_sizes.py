@@ -41,6 +41,9 @@ class _Prefix:
     def on_run_start(self, info: RunInfo) -> None:
         self.recorder.on_run_start(info)
 
+    def on_restart(self, info: RunInfo) -> None:
+        self.recorder.on_restart(info)
+
     def on_frame(self, frame) -> None:
         if frame.index < self.stop:
             self.recorder.on_frame(frame)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -215,6 +216,30 @@ def _transform(T: np.ndarray) -> rr.Transform3D:
     return rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3])
 
 
+def _new_stream() -> rr.RecordingStream:
+    # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of chunk
+    # headers a frame. Not longer: the batcher's tick is also how late a failed write (a full disk) is seen; the
+    # summary and default levels are compacted on close (rrd_compact), which merges the chunks anyway. close()
+    # flushes, so Ctrl-C loses nothing.
+    return rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=2),
+                                                                          flush_num_bytes=4 << 20))
+
+
+def _set_aside(path: Path, suffix: str) -> Path:
+    """Move the file at `path` to the first free of <stem><suffix>, <stem><suffix>-2... beside it (never over a
+    file) -> where it went."""
+    n = 1
+    while True:
+        target = path.with_name(f"{path.stem}{suffix}{'' if n == 1 else f'-{n}'}{path.suffix}")
+        try:
+            os.link(path, target)
+        except FileExistsError:
+            n += 1
+            continue
+        os.unlink(path)
+        return target
+
+
 class RerunRecorder:
     """Writes a run to `path` (.rrd, streamed as it goes, readable even if the run is cut short).
 
@@ -225,18 +250,18 @@ class RerunRecorder:
                  stream: rr.RecordingStream | None = None, next_free: bool = False):
         self.path = None if path is None else Path(path)
         self.opt = options or RerunOptions()
-        # Chunks batched over 2 s rather than 0.2 s: the ~40 small entities of a frame otherwise cost ~16 kB of
-        # chunk headers a frame. Not longer: the batcher's tick is also how late a failed write (a full disk) is
-        # seen; the summary and default levels are compacted on close (rrd_compact), which merges the chunks
-        # anyway. close() flushes, so Ctrl-C loses nothing.
-        self.rec = stream or rr.RecordingStream("plvo", batcher_config=rr.ChunkBatcherConfig(
-            flush_tick=timedelta(seconds=2), flush_num_bytes=4 << 20))
+        self.rec = stream or _new_stream()
         # Written from Python (plvo_app/rrd_sink.py), not by rec.save: a full disk raises RecordingError at the step
         # it happens, and the file is cut back to its last complete message, still readable.
         self._sink = None if self.path is None else RrdFileSink(self.rec, self.path, default_blueprint=blueprint(),
                                                                 next_free=next_free)
         if self._sink is not None:
             self.path = self._sink.path  # next_free: path-2, -3... when path was taken
+        self.before_restart: Path | None = None  # the recording of the frames before a restart (on_restart)
+        self._fresh()
+
+    def _fresh(self) -> None:
+        """The state of a recording of no frame yet."""
         self._frame: Frame | None = None
         self._T_world_cam: np.ndarray | None = None
         self._trail = EstimateTrail()
@@ -292,6 +317,29 @@ class RerunRecorder:
         if gt is not None:
             rec.log(E["gt"], rr.LineStrips3D([gt[:, :3, 3].astype(np.float32)], colors=[(235, 235, 235)],
                                              radii=rr.Radius.ui_points(1.5)), static=True)
+
+    def on_restart(self, info: RunInfo) -> None:
+        """The frames so far are superseded: their recording is closed, stamped "restarted" and kept beside as
+        <name>-before-restart.rrd (what the run saw before it knew better), and this path gets a new recording of
+        the run that counts, which says why in its `plvo_restart` property and decision log. A stream handed in
+        (served, tests) carries on: the run's frames are logged again over the first ones."""
+        why = info.extra.get("restart", {})
+        if self._sink is not None and self.path is not None:
+            path = self.path
+            self.set_status("restarted", int(why.get("frames_before", 0)))
+            self.close()
+            if path.exists():
+                self.before_restart = _set_aside(path, "-before-restart")
+            self.rec = _new_stream()
+            self._sink = RrdFileSink(self.rec, path, default_blueprint=blueprint())
+        else:  # the frames' buffered series are dropped, the warnings so far logged
+            self._drain_warnings()
+            logging.getLogger("plvo").removeHandler(self._warnings)
+        self._fresh()
+        self.on_run_start(info)
+        self.rec.send_property("plvo_restart", rr.AnyValues(
+            **{k: "" if v is None else v for k, v in why.items()},
+            before=str(self.before_restart or "")))
 
     def on_frame(self, frame: Frame) -> None:
         rec = self.rec

@@ -282,6 +282,12 @@ class SceneStore:
     name: str = ""
     lock: threading.RLock = field(default_factory=threading.RLock)
 
+    def clear(self) -> None:
+        """Drop every frame and layer (a run started again); the statics stay."""
+        with self.lock:
+            self.frames.clear()
+            self.layers.clear()
+
     def add_frame(self, frame_index: int) -> None:
         with self.lock:
             if not self.frames or frame_index > self.frames[-1]:

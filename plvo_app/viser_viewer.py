@@ -542,6 +542,23 @@ class ViserRecorder:
             else:
                 s.replace(layer, old, None)
 
+    def _log(self, frame_index: int, text: str) -> None:
+        """A line of the frame's log (the status panel's markdown), after those it has."""
+        before = self.store.value_at("log", frame_index)
+        self.store.put("log", frame_index, text if before is None else f"{before}  \n{text}")
+
+    def on_restart(self, info: RunInfo) -> None:
+        """The run starts again from its first frame: the scene so far is dropped and grows again."""
+        self.store.clear()
+        self._frame, self._pose = None, None
+        self._trail, self._by_lidar, self._loops = EstimateTrail(), [], []
+        self._heavy.clear()
+        self.on_run_start(info)
+        why = info.extra.get("restart", {})
+        first = info.frame_indices[0] if info.frame_indices else 0
+        self._log(first, f"started again from the first frame: {why.get('reason', 'restart')} found at "
+                                     f"frame {why.get('at_frame', '?')}")
+
     def on_run_start(self, info: RunInfo) -> None:
         s = self.store
         s.name, s.K, s.width, s.height = info.name, info.calib.K, info.calib.width, info.calib.height
@@ -566,9 +583,9 @@ class ViserRecorder:
         self._trail.on_tracking(frame_index, self._pose)
         source = getattr(result, "source", "camera")  # the tracker's FrontendResult: where the pose came from
         if not result.ok:
-            self.store.put("log", frame_index, result.message or "tracking lost")
+            self._log(frame_index, result.message or "tracking lost")
         elif source != "camera":
-            self.store.put("log", frame_index, f"pose by the {source}: {result.message}")
+            self._log(frame_index, f"pose by the {source}: {result.message}")
             self._by_lidar.append(len(self._trail.frames) - 1)
             self.store.put("by_lidar", frame_index, TrailView(self._trail, len(self._trail.frames),
                                                               rows=tuple(self._by_lidar)))
@@ -613,7 +630,7 @@ class ViserRecorder:
     def _keyframe(self, frame_index: int, kf: KeyframeResult) -> None:
         pose = np.asarray(kf.T_world_cam if kf.T_world_cam is not None else self._pose, float)
         frame = self._frame
-        self.store.put("log", frame_index, f"keyframe {kf.keyframe_id}: {kf.reason}")
+        self._log(frame_index, f"keyframe {kf.keyframe_id}: {kf.reason}")
         self._trail.on_keyframe(kf.keyframe_id, frame_index, pose)
         self._put_estimate(frame_index)
         if frame is None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from plvo.depth.extract import DepthDebug
@@ -91,11 +93,21 @@ def run_info(n: int) -> RunInfo:
                    "plvo-viz --seq fake", {"config_toml": "[orb]\nn_features = 50\n"})
 
 
-def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1) -> None:
+def restart_info(n: int, at_frame: int) -> RunInfo:
+    """What System.restart tells the recorders: the run's info with why it starts again."""
+    info = run_info(n)
+    return dataclasses.replace(info, extra={**info.extra, "restart": {
+        "at_frame": at_frame, "frames_before": at_frame + 1, "reason": "camera-lidar time offset",
+        "time_offset_s": 0.098, "sigma_s": 0.0013}})
+
+
+def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1, start: bool = True) -> None:
     """Feed `recorder` n frames as plvo.system.System does: keyframes every `every` frames (and at LOST_FRAME),
-    the back end's results `backend_lag` frames late (at the keyframe's frame index), a loop at the end."""
+    the back end's results `backend_lag` frames late (at the keyframe's frame index), a loop at the end.
+    start: begin with on_run_start (not after an on_restart, which stands for it)."""
     rng = np.random.default_rng(0)
-    recorder.on_run_start(run_info(n))
+    if start:
+        recorder.on_run_start(run_info(n))
     kfs = keyframe_frames(n, every)
     pending: list[tuple[int, object]] = []
     for i in range(n):

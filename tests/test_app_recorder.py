@@ -253,3 +253,28 @@ def test_a_step_cut_between_two_appends_still_closes(tmp_path):
     assert data.frames("/metrics/time/total") == list(range(6))
     assert data.frames("/world/camera") == list(range(6))
     assert len(data.temporal["/world/trajectory/est"]) > 0
+
+
+def test_a_restarted_run_records_the_run_that_counts(tmp_path):
+    """System.restart (a camera-lidar time offset found at frame 4): the recording at the path holds the frames of
+    the run started again, says why, and the first five frames are kept beside it, stamped "restarted"."""
+    import app_fakes
+
+    path = tmp_path / "run.rrd"
+    rec = RerunRecorder(path, RerunOptions())
+    app_fakes.drive(rec, 5, backend_lag=0)
+    rec.on_restart(app_fakes.restart_info(N, 4))
+    app_fakes.drive(rec, N, start=False)
+    rec.set_status("complete", N)
+    rec.close()
+    before = tmp_path / "run-before-restart.rrd"
+    assert rec.path == path and rec.before_restart == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run-before-restart.rrd", "run.rrd"]
+    data, first = read_rrd(path), read_rrd(before)
+    assert data.frames("/world/camera") == list(range(N))
+    assert data.frames("/metrics/tracking/point_inliers") == list(range(N))  # the first run's series are not in it
+    assert data.properties["plvo_run:status"] == "complete"
+    assert data.properties["plvo_restart:at_frame"] == 4 and data.properties["plvo_restart:time_offset_s"] == 0.098
+    assert data.properties["plvo_restart:before"] == str(before)
+    assert first.properties["plvo_run:status"] == "restarted" and first.properties["plvo_run:frames_done"] == 5
+    assert first.frames("/world/camera") == list(range(5))

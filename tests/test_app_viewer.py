@@ -303,6 +303,26 @@ def test_frame_change_on_a_long_replay(browser, tmp_path_factory):
         v.close()
 
 
+def test_a_restarted_run_grows_again_from_the_first_frame():
+    """System.restart: the live scene of the frames so far is dropped, the run started again shown as it grows,
+    and the log says why."""
+    from app_fakes import restart_info
+
+    viewer = ViserViewer(SceneStore(), port=_free_port(), live=True)
+    try:
+        rec = ViserRecorder(viewer, min_interval_s=0.0)
+        drive(rec, 6)
+        rec.on_restart(restart_info(N, 5))
+        assert viewer.store.frames == [] and "est" not in viewer.store.layers
+        drive(rec, 3, start=False)
+        assert viewer.store.frames == [0, 1, 2] and viewer.shown_frame == 2
+        assert viewer.store.latest("log", 0).startswith("started again from the first frame: camera-lidar time "
+                                                        "offset found at frame 5")
+        np.testing.assert_allclose(np.asarray(viewer.store.latest("est", 2))[-1], pose(2)[:3, 3], atol=1e-5)
+    finally:
+        viewer.close()
+
+
 def test_live_store_stays_bounded():
     """Over a long live run only the last `keep` images and scans are kept whole, older maps thinned, and the
     estimate is a view of one trail rather than a copy a keyframe."""

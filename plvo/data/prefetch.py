@@ -18,7 +18,7 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from typing import Any
 
 from plvo.errors import RunFailed
@@ -32,7 +32,7 @@ READ_TIMEOUT_S = 60.0  # one frame's files (a few MB) read in milliseconds; a mi
 
 def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None = None,
                niceness: int = 0, finish: Callable[[Frame, Any], Frame] | None = None,
-               timeout_s: float | None = None) -> Iterator[Frame]:
+               timeout_s: float | None = None) -> Generator[Frame, None, None]:
     """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed; the
     reading thread runs at `niceness` (plvo.priority.lower_priority). finish, timeout_s: see the module doc."""
     if prepare is None:

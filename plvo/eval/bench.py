@@ -255,6 +255,10 @@ class TimingTap:
     def on_run_start(self, info: RunInfo) -> None:
         self.inner.on_run_start(info)
 
+    def on_restart(self, info: RunInfo) -> None:
+        self.per_frame.clear()  # the frames of the run that counts, as the System's own timings
+        self.inner.on_restart(info)
+
     def on_frame(self, frame: Frame) -> None:
         self.inner.on_frame(frame)
 

@@ -79,6 +79,14 @@ class SoakTap:
     def on_run_start(self, info: RunInfo) -> None:
         self.inner.on_run_start(info)
 
+    def on_restart(self, info: RunInfo) -> None:
+        # the frames of the run that counts; the memory samples go on (the process tree is what it is)
+        for kept in (self.frames, self.step_end, self.step_s, self.lost, self.loops):
+            kept.clear()
+        self.tracked.clear()
+        self.kf_frame.clear()
+        self.inner.on_restart(info)
+
     def on_frame(self, frame) -> None:
         self.inner.on_frame(frame)
 

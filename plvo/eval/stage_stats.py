@@ -105,6 +105,9 @@ class StageStatsRecorder:
     each landmark tied to a feature) and falls back on the TrackingResult's own counts where it is not."""
 
     def __init__(self) -> None:
+        self._reset()
+
+    def _reset(self) -> None:
         self.lists: dict[str, list[float]] = {}
         self.pooled: dict[str, list[np.ndarray]] = {}
         self.point_tracks = _Tracks()
@@ -114,6 +117,9 @@ class StageStatsRecorder:
     # ---- the Recorder protocol -------------------------------------------------------------------------------
     def on_run_start(self, info: RunInfo) -> None:
         pass
+
+    def on_restart(self, info: RunInfo) -> None:
+        self._reset()  # the statistics of the run that counts alone
 
     def on_frame(self, frame: Frame) -> None:
         pass

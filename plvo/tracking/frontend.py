@@ -178,6 +178,9 @@ class Frontend:
                        if self._lidar is not None and cc.estimate_time_offset else None)
         self.offset_found: OffsetEstimate | None = None  # the estimate once it was observable and large
         self._offset_s = cc.time_offset_s  # the stated offset: scans moved by it to the images' instants
+        # with an offset stated: the camera's velocity (twist a second, its frame) at recent frames, which moves the
+        # check's lidar motions from the scans' instants to the images'
+        self._twists: dict[int, np.ndarray] = {}
 
     # ---- the per-frame entry point -----------------------------------------------------------------------
     @property
@@ -207,6 +210,8 @@ class Frontend:
         if self._prev_time is not None and frame.time > self._prev_time:
             self._prev_dt = frame.time - self._prev_time
         self._prev_time = frame.time
+        if self._offset_s and self._prev_dt:
+            self._keep_twist(frame.index)
         self._last_input = frame
         if self.offset is not None:
             self.offset.frame(frame.time, res.T_world_cam[:3, :3])
@@ -342,10 +347,38 @@ class Frontend:
     # ---- the camera checked against the lidar ---------------------------------------------------------------
     def _lidar_motion(self, src: Frame, dst: Frame, guesses: list[np.ndarray], timings: dict[str, float],
                       thorough: bool = True) -> LidarMotion:
+        """The lidar's motion from src to dst, in the camera's frame; with a stated time offset, between the
+        images' instants: the scans, taken `o` later, span M(t_src + o)^-1 M(t_dst + o) = E_src^-1 D E_dst with
+        E = exp(o twist) the motion over o at each end (the camera's velocity there), so D = E_src D_lidar
+        E_dst^-1 (for a compensated scan, exactly what moving the scan to its image's instant does)."""
         assert self._lidar is not None
+        ends = self._offset_ends(src.index)
+        if ends is not None:
+            E_src, E_dst = ends
+            guesses = [se3.inv(E_src) @ g @ E_dst for g in guesses]
         motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
         timings["crosscheck"] = timings.get("crosscheck", 0.0) + motion.time_s
-        return motion
+        if ends is None:
+            return motion
+        return dataclasses.replace(motion, T_camprev_camcur=ends[0] @ motion.T_camprev_camcur @ se3.inv(ends[1]),
+                                   T_as_taken=motion.T_camprev_camcur)
+
+    def _keep_twist(self, frame_index: int) -> None:
+        """The camera's velocity at this frame (the last step's), for `_offset_ends`; those of frames no check
+        starts from any more are dropped."""
+        assert self._prev_dt is not None
+        self._twists[frame_index] = se3.log(self._velocity) / self._prev_dt
+        oldest = min(frame_index - 1, self._last_kf_input.index if self._last_kf_input is not None else frame_index)
+        for f in [f for f in self._twists if f < oldest]:
+            del self._twists[f]
+
+    def _offset_ends(self, src_index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(E_src, E_dst): the camera's motion over the stated offset at the interval's start and end (the end's
+        velocity: the last known, the step to the previous frame); None without an offset or a velocity yet."""
+        last = self._last_input
+        if not self._offset_s or last is None or src_index not in self._twists or last.index not in self._twists:
+            return None
+        return se3.exp(self._offset_s * self._twists[src_index]), se3.exp(self._offset_s * self._twists[last.index])
 
     def _check(self, frame, feats, prev, base, T, velocity, doubted: bool, timings):
         """The camera's pose T checked against the lidar: over the last frame's interval when the estimate is in
@@ -390,11 +423,12 @@ class Frontend:
         what to state.
 
         It is not corrected mid-run: the landmarks and the back end's local map made so far hold the offset, and
-        moving the scans from a frame on mixed the two (docs/crosscheck.md)."""
+        moving the scans from a frame on mixed the two (docs/crosscheck.md); the run loop starts again from the
+        first frame with it stated instead (System.restart_wanted)."""
         if self.offset is None:
             return
         cc = self.cfg.crosscheck
-        self.offset.interval(t_src, frame.time, lidar.T_camprev_camcur[:3, :3])
+        self.offset.interval(t_src, frame.time, lidar.rotation_as_taken)
         n = self.offset.n_intervals  # an estimate costs ~10-50 ms at a full window: ever rarer as the run goes
         if self.offset_found is not None or n % (5 if n < 50 else 25):
             return
@@ -403,10 +437,12 @@ class Frontend:
             return
         self.offset_found = est
         what = "after" if est.offset_s > 0 else "before"
+        use = ("the run starts again from its first frame with them moved to the images' instants"
+               if cc.restart_on_offset else
+               f"run again with --time-offset {est.offset_s:.3f} to move them to the images' instants")
         self.checks.note(frame.index, "camera-lidar time offset", f"the scans are taken {abs(est.offset_s):.3f} s "
                          f"(+- {est.sigma_s:.3f}) {what} the images (from the rotations of {est.n_intervals} "
-                         f"intervals); run again with --time-offset {est.offset_s:.3f} to move them to the images' "
-                         "instants")
+                         f"intervals); {use}")
 
     def _seeded(self, prev, feats, T_src, lidar: LidarMotion, timings):
         """The camera's pose matched and solved again from the lidar's motion (the pose of the interval's start

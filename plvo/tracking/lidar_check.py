@@ -46,6 +46,14 @@ class LidarMotion:
     conditioning: float
     usable: bool
     time_s: float
+    # the motion between the scans' own instants, where T_camprev_camcur is moved to the images' (a stated time
+    # offset: Frontend._lidar_motion); None: the same
+    T_as_taken: np.ndarray | None = None
+
+    @property
+    def rotation_as_taken(self) -> np.ndarray:
+        """(3,3) the rotation between the scans as they were taken (what the time offset is estimated from)."""
+        return (self.T_camprev_camcur if self.T_as_taken is None else self.T_as_taken)[:3, :3]
 
     @property
     def step_m(self) -> float:
