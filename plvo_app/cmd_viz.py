@@ -6,6 +6,8 @@ results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI forma
 timestamps under --format tum; written only when the run completed), truth.txt (the data's ground truth of the same
 frames, alike, where it has one), summary.json (how the run ended, its speed and, with truth, its accuracy: also
 the terminal's last lines), config.toml (the resolved config) and timings.json; results/latest links the newest.
+A run that starts again from its first frame (a camera-lidar time offset found, docs/crosscheck.md) keeps the
+recording of the frames before beside its own, as <name>-before-restart.rrd.
 --root also takes a ROS 1 .bag, a ROS 2 bag folder or .mcap, or a plain images/ + scans/ folder.
 Ctrl-C, SIGTERM or SIGHUP (a closed terminal) stops the run, closes the recording (readable, stamped "interrupted")
 and marks timings.json likewise; a run that fails (a write, a worker, an unexpected error) or tracks less than half
@@ -334,14 +336,21 @@ def _run_frames(system, dataset, at: list[int]) -> float:
     return system.frames_done / max(time.perf_counter() - t0, 1e-9)
 
 
+def _save_config(cfg: SystemConfig, out: Path) -> None:
+    try:
+        save_config(cfg, out / "config.toml")
+    except OSError as exc:
+        raise OutputError(f"{out / 'config.toml'}: cannot write ({exc.strerror or exc})") from None
+
+
 def _start_outputs(outs: Outputs, cfg: SystemConfig, n_frames: int) -> RunLog:
     """run.log, config.toml and timings.json marked "running": the first real writes, before the first frame."""
     runlog = RunLog(outs.out / "run.log")
     try:
-        save_config(cfg, outs.out / "config.toml")
-    except OSError as exc:
+        _save_config(cfg, outs.out)
+    except OutputError:
         runlog.close()
-        raise OutputError(f"{outs.out / 'config.toml'}: cannot write ({exc.strerror or exc})") from None
+        raise
     write_json(outs.out / "timings.json", {"status": "running", "frames_total": n_frames})
     return runlog
 
@@ -413,6 +422,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
         system.start(info)
         fps = _run_frames(system, dataset, at)
+        if system.restarts:  # the config the poses come from: given again, it runs them without a restart
+            _save_config(system.config, outs.out)
         status = "complete"
     except KeyboardInterrupt as exc:
         status, exit_code = "interrupted", exit_status_of(exc)

@@ -120,3 +120,25 @@ def test_late_scans_are_found_and_the_run_starts_again_with_them_moved(late_scan
     assert ate["started again"] < 2 * ate["paired right"] < ate["unstated"], ate
     worst = {name: _max_error(ds, r.poses) for name, r in (("started again", out), ("paired right", aligned))}
     assert worst["started again"] < 3 * worst["paired right"], worst
+
+
+def test_plvo_viz_says_it_started_again_and_keeps_both_recordings(late_scans, tmp_path, monkeypatch, capsys):
+    """As a user meets it: exit 0, the last line says the offset and that the run started again, config.toml is
+    the config the poses come from (the offset stated), and the recording of the frames before is kept beside."""
+    from plvo.config import load_config
+    from plvo_app.cli import main_viz
+    from plvo_app.rrd_reader import read_rrd
+
+    monkeypatch.chdir(tmp_path)
+    assert main_viz(["--root", str(late_scans[1]), "--seq", "00", "--frames", "0:40", "--no-serve",
+                     "--rrd", "run.rrd", "--out", "out"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].startswith("camera-lidar time offset: the scans are taken 0.09") and "started again" in err[-1]
+    assert err[-2].startswith("complete: 40 frames"), err[-3:]
+    stated = load_config(tmp_path / "out" / "config.toml").crosscheck.time_offset_s
+    assert abs(stated - 0.1) < 0.02
+    assert len((tmp_path / "out" / "poses.txt").read_text().splitlines()) == 40
+    data, before = read_rrd(tmp_path / "run.rrd"), read_rrd(tmp_path / "run-before-restart.rrd")
+    assert data.frames("/world/camera") == list(range(40)) and data.properties["plvo_run:status"] == "complete"
+    assert before.properties["plvo_run:status"] == "restarted"
+    assert before.frames("/world/camera") == list(range(before.properties["plvo_run:frames_done"]))
