@@ -66,6 +66,24 @@ def test_float64_scan_is_refused_naming_the_file(kitti_root, tmp_path, capsys):
     assert not (tmp_path / "out" / "poses.txt").exists()
 
 
+@pytest.mark.parametrize(("far_share", "intensity", "refused"), [
+    (0.0, 65535.0, False),  # 16-bit intensities beside metres: the quick test fails, the exact one passes
+    (0.005, 1.0, False),  # a few stray returns
+    (0.02, 1.0, True),  # a scan's worth: not metres
+])
+def test_scan_values_plausible_or_refused(far_share, intensity, refused):
+    from plvo.data.pointcloud import check_scan_values
+
+    rng = np.random.default_rng(0)
+    scan = np.column_stack([rng.uniform(-80, 80, (10000, 3)), np.full(10000, intensity)]).astype(np.float32)
+    scan[: int(far_share * len(scan)), 0] = 3.7e19
+    if refused:
+        with pytest.raises(DatasetError, match="beyond 10000 m"):
+            check_scan_values(scan, "x.bin", 7)
+    else:
+        check_scan_values(scan, "x.bin", 7)
+
+
 def test_frozen_camera_run_says_so(kitti_root, tmp_path, capsys, caplog):
     row = fault("camera-frozen")
     root = variant(kitti_root, SEQ, tmp_path / "frozen", 20, image_of=lambda i: 9 if 10 <= i <= 12 else i)
