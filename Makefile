@@ -4,7 +4,7 @@ run:
 	bash scripts/setup.sh && .venv/bin/plvo-viz $(ARGS)
 # The lint and type checks first (seconds), then the suite
 test:
-	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app tests scripts && .venv/bin/mypy plvo && \
+	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app plvo_eval plvo_synth tests scripts && .venv/bin/mypy && \
 	.venv/bin/python -m pytest -q -p no:cacheprovider $(ARGS)
 # The suite with a busy loop on one core throughout (the bounds hold on a loaded machine too)
 test-busy:
@@ -14,6 +14,6 @@ test-bits:
 	bash scripts/setup.sh --test && bash scripts/test_other_bits.sh $(ARGS)
 bench:
 	bash scripts/setup.sh && .venv/bin/plvo bench $(ARGS)
-# Style (ruff, the rules in pyproject.toml) and types (mypy on plvo/, the settings in pyproject.toml)
+# Style (ruff, the rules in pyproject.toml) and types (mypy on plvo/, plvo_eval/ and plvo_synth/: pyproject.toml)
 lint:
-	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app tests scripts && .venv/bin/mypy plvo
+	bash scripts/setup.sh --test && .venv/bin/ruff check plvo plvo_app plvo_eval plvo_synth tests scripts && .venv/bin/mypy

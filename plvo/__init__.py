@@ -25,9 +25,9 @@ __version__ = "0.1.0"
 
 # name -> the module that defines it
 _PUBLIC = {
-    "System": "plvo.system",
-    "run_dataset": "plvo.run",
-    "RunOutput": "plvo.run",
+    "System": "plvo.runtime.system",
+    "run_dataset": "plvo.runtime.run",
+    "RunOutput": "plvo.runtime.run",
     "load_config": "plvo.config",
     "SystemConfig": "plvo.config",
     "open_dataset": "plvo.data.registry",
@@ -42,8 +42,8 @@ if TYPE_CHECKING:
     from plvo.config import SystemConfig, load_config
     from plvo.data.registry import open_dataset
     from plvo.recording import Recorder
-    from plvo.run import RunOutput, run_dataset
-    from plvo.system import System
+    from plvo.runtime.run import RunOutput, run_dataset
+    from plvo.runtime.system import System
     from plvo.types import Calibration, Frame
 
 

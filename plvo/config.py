@@ -166,7 +166,7 @@ class CrossCheckConfig:
     offset_max_s: float = 0.2
     offset_sigma_s: float = 0.01
     offset_warn_s: float = 0.02
-    # A found offset is used by running again from the first frame with it stated (the run loops of plvo.run and
+    # A found offset is used by running again from the first frame with it stated (the run loops of plvo.runtime.run and
     # plvo-viz): moving the scans mid-run mixed the frames before it with those after (docs/crosscheck.md)
     restart_on_offset: bool = True
 
@@ -236,8 +236,8 @@ class BackendConfig:
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
     concurrent: bool = True  # run the back end and the loop closer beside the tracker (False: inline, lag 0)
-    # Where the concurrent workers run (plvo.workers): "process" (no GIL shared with the tracker; the features are
-    # then extracted in a process of their own too, plvo.features.worker) or "thread".
+    # Where the concurrent workers run (plvo.runtime.workers): "process" (no GIL shared with the tracker; the features
+    #  are then extracted in a process of their own too, plvo.features.worker) or "thread".
     executor: str = "process"
     # How long the run waits for a worker (back end, loop closer, features) that sends nothing while its result is
     # due, before it fails the run naming the worker (a stopped or deadlocked process; a dead one is seen at once).

@@ -1,8 +1,8 @@
 """Thread priorities: work whose result is needed later yields the cores to work the tracker waits for.
 
 In the deployed mode the tracker waits, when it makes a keyframe, for the back end's result of the keyframe before
-(plvo.system): the back end is on the run's critical path. Frames read and their features extracted ahead
-(plvo.data.prefetch, `System.prepare`, with the line thread they use) and the loop closer (whose results are applied
+(plvo.runtime.system): the back end is on the run's critical path. Frames read and their features extracted ahead
+(plvo.runtime.prefetch, `System.prepare`, with the line thread they use) and the loop closer (whose results are applied
 20 frames later) run at LOOKAHEAD_NICENESS, so that on two cores they take what the back end and the tracker leave.
 Measured on KITTI 04 (6 runs each way, alternating, KISS-ICP after each): 0.75 -> 0.82 of KISS-ICP's frames a second
 (medians). With the back-end lag of 6 frames (`backend.max_lag_frames`) the tracker rarely waits for the back

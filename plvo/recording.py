@@ -1,6 +1,6 @@
 """The Recorder protocol: how the library hands what each stage saw and decided to viewers and loggers.
 
-The library never imports a viewer. `plvo.system` calls these methods with typed, frozen results; the Rerun and
+The library never imports a viewer. `plvo.runtime.system` calls these methods with typed, frozen results; the Rerun and
 viser recorders in `plvo_app` implement them. Recorders must not mutate what they are given.
 """
 
@@ -50,8 +50,8 @@ class Recorder(Protocol):
         """Once, before the first frame."""
 
     def on_restart(self, info: RunInfo) -> None:
-        """The run starts again from its first frame (plvo.system.System.restart): what was recorded of the frames
-        so far is superseded; `info` carries the new config and, in extra["restart"], why and at which frame."""
+        """The run starts again from its first frame (plvo.runtime.system.System.restart): what was recorded of the
+        frames so far is superseded; `info` carries the new config and, in extra["restart"], why and at which frame."""
 
     def on_frame(self, frame: Frame) -> None:
         """A new input frame (image and scan) is about to be processed; sets the current time."""

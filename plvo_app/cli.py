@@ -32,8 +32,8 @@ from types import ModuleType
 # start later, one), whose second one spent 9 s spinning in a 271-frame twin run once the tracking thread deskewed.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from plvo.allocator import keep_freed_memory  # noqa: E402
 from plvo.errors import PlvoError  # noqa: E402
-from plvo.heap import keep_freed_memory  # noqa: E402
 from plvo_app.guards import (  # noqa: E402
     Terminated,
     exit_status_of,
@@ -44,7 +44,7 @@ from plvo_app.guards import (  # noqa: E402
 from plvo_app.terminal import QUIET, setup_terminal  # noqa: E402
 
 # The tracking process reads, decodes and ships a frame's arrays every frame: keep freed memory for the next one
-# (plvo.heap; the worker processes do the same).
+# (plvo.allocator; the worker processes do the same).
 keep_freed_memory()
 
 # name -> (module, one-line help)

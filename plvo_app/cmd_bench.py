@@ -31,19 +31,19 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from plvo import provenance
 from plvo.atomic import write_text_atomic
 from plvo.config import config_to_dict, load_config
 from plvo.errors import DatasetError, OutputError
 from plvo_app.run_outputs import refuse_existing
 from plvo_app.source_args import add_source_arguments, source_options
+from plvo_eval import provenance
 
 if TYPE_CHECKING:
     from plvo.recording import RunInfo
 
-# plvo.eval.bench (numpy, the pipeline) is imported when the bench runs: `plvo bench --help` answers at once
+# plvo_eval.bench (numpy, the pipeline) is imported when the bench runs: `plvo bench --help` answers at once
 log = logging.getLogger(__name__)
-# plvo.eval.bench.STAGE_GROUPS, named here for --help (tests/test_cli_terminal.py checks that the two agree)
+# plvo_eval.bench.STAGE_GROUPS, named here for --help (tests/test_cli_terminal.py checks that the two agree)
 STAGE_GROUPS = ("features", "matching", "depth", "registration", "backend", "loop", "system")
 
 REPO = Path(__file__).resolve().parents[1]
@@ -72,7 +72,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, help="TOML config overriding the paper's defaults")
     p.add_argument("--soak", action="store_true", help="instead: one whole run of the sequence as plvo-viz runs it "
                    "(recording on), reporting per 100-frame window frames a second, memory, recording size and pose "
-                   "error, and per run the loops, corrections and losses (plvo.eval.soak); e.g. --synth DIR --seq 40 "
+                   "error, and per run the loops, corrections and losses (plvo_eval.soak); e.g. --synth DIR --seq 40 "
                    "of `plvo synth --out DIR --seq 40 --frames 4541 --seed 7 --speed 11 --loop --stops`")
     add_source_arguments(p)
 
@@ -93,7 +93,7 @@ def _open(args: argparse.Namespace):
         return open_dataset(root, args.seq or "04", frames, **source), root
     if (SHARED_KITTI / "sequences" / (args.seq or "04")).is_dir():
         return open_dataset(SHARED_KITTI, args.seq or "04", frames, **source), SHARED_KITTI
-    from plvo.data.synth import DEFAULT_SEQUENCE, default_sequence_root
+    from plvo_synth import DEFAULT_SEQUENCE, default_sequence_root
 
     log.info("no KITTI frames found: benchmarking the synthetic town (generated on first use)")
     root = default_sequence_root()
@@ -125,7 +125,7 @@ def versions() -> dict[str, str | None]:
 
 class RerunFactory:
     """run -> (a RerunRecorder writing folder/bench_<run>.rrd, that path); picklable, so that a deployed run can make
-    its recorder in a fresh process (plvo.eval.bench.deployed_figures)."""
+    its recorder in a fresh process (plvo_eval.bench.deployed_figures)."""
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
@@ -148,15 +148,15 @@ class Reopen:
 
 
 def run_bench(*args, **kwargs) -> dict:
-    """plvo.eval.bench.run_bench, imported when called (a name of this module, as it was: a test replaces it)."""
-    from plvo.eval.bench import run_bench as run_bench_
+    """plvo_eval.bench.run_bench, imported when called (a name of this module, as it was: a test replaces it)."""
+    from plvo_eval.bench import run_bench as run_bench_
 
     return run_bench_(*args, **kwargs)
 
 
 def run(args: argparse.Namespace) -> int:
-    from plvo.eval.bench import parse_stages
     from plvo_app.cmd_viz import run_info
+    from plvo_eval.bench import parse_stages
 
     stages = parse_stages(args.stages)  # bad arguments fail before any work
     if args.out is not None and args.out.is_dir():
@@ -191,12 +191,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _soak(args: argparse.Namespace, cfg, dataset, info: RunInfo, machine: dict, command: str, out: Path) -> int:
-    """`plvo bench --soak`: the whole sequence as plvo-viz runs it; the JSON of plvo.eval.soak."""
+    """`plvo bench --soak`: the whole sequence as plvo-viz runs it; the JSON of plvo_eval.soak."""
     from tqdm import tqdm
 
-    from plvo.eval.soak import run_soak
     from plvo_app.rerun_recorder import RerunRecorder
     from plvo_app.terminal import progress_enabled
+    from plvo_eval.soak import run_soak
 
     with tempfile.TemporaryDirectory(prefix="plvo-soak-") as tmp:
         rrd = Path(tmp) / "soak.rrd"

@@ -3,7 +3,7 @@
 `metric` prints the KITTI devkit figures (translation error in %, rotation error in deg/m, per segment length
 100..800 m, a start every 10 frames), the ATE after SE(3) and Sim(3) alignment, and the relative error over short
 lengths with every frame a start; then the devkit and short errors again with one constant heading offset of the
-truth against the estimate taken out, and the fitted angle (plvo.eval.kitti_metric says why). Either file is KITTI (12
+truth against the estimate taken out, and the fitted angle (plvo_eval.kitti_metric says why). Either file is KITTI (12
 numbers a line) or TUM (time tx ty tz qx qy qz qw); an estimate may be a results folder (its poses.txt, summary.json
 and truth.txt), and `--est` repeats to compare runs in one table; `--plot DIR` draws them (plvo_app/eval_metric.py).
 `run` runs plvo ablations and KISS-ICP over sequences and writes Table I (see plvo_app/eval_run.py).

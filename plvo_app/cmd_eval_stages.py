@@ -6,9 +6,9 @@ Examples:
   plvo eval stages --real ROOT 04 --twin TWINS 04 --frames 0:51 --set depth.point_patch_px=9 --out OUT
 
 Runs plvo (as `plvo eval run` does: the defaults or --config and --set, deployed mode) and KISS-ICP (voxel 1 m,
-deskewed where the scans are raw sweeps) on both sequences, gathering per-stage statistics (plvo.eval.stage_stats,
-plvo.eval.kiss_stats), and writes OUT/report.md and OUT/report.json: per statistic the real clip's and the twin's
-figure, twin / real, flagged outside 0.8-1.25; each system's accuracy on both (plvo.eval.stage_report).
+deskewed where the scans are raw sweeps) on both sequences, gathering per-stage statistics (plvo_eval.stage_stats,
+plvo_eval.kiss_stats), and writes OUT/report.md and OUT/report.json: per statistic the real clip's and the twin's
+figure, twin / real, flagged outside 0.8-1.25; each system's accuracy on both (plvo_eval.stage_report).
 """
 
 from __future__ import annotations
@@ -42,22 +42,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _source(pair: list[str], frames: str | None, label: str):
-    from plvo.eval.tasks import SequenceSource
+    from plvo_eval.tasks import SequenceSource
 
     root, seq = pair
     return SequenceSource(str(Path(root).resolve()), seq, frames, label=label)
 
 
 def run(args: argparse.Namespace) -> int:
-    from plvo import provenance
     from plvo.atomic import write_text_atomic
     from plvo.data.registry import parse_frames
     from plvo.errors import OutputError
-    from plvo.eval.stage_report import report_markdown, stage_report
-    from plvo.eval.stage_runs import run_side
-    from plvo.eval.tasks import RunSpec
     from plvo_app.eval_run import parse_overrides
     from plvo_app.run_outputs import refuse_existing
+    from plvo_eval import provenance
+    from plvo_eval.stage_report import report_markdown, stage_report
+    from plvo_eval.stage_runs import run_side
+    from plvo_eval.tasks import RunSpec
 
     started = provenance.start()
     if args.out.exists() and not args.out.is_dir():

@@ -7,7 +7,7 @@ Examples:
   plvo synth --out data/rawtwins --raw-drive ../shared/data/kitti_raw --seq 2011_09_26_drive_0009 --frames 0:51
 write OUT/sequences/NN/{image_0,velodyne,gt}/..., calib.txt, times.txt and OUT/poses/NN.txt, readable by
 pykitti.odometry('OUT', 'NN') and by `plvo-viz --root OUT --seq NN`. A twin (--follow, --twins) is driven along a
-KITTI pose file, with traffic, sun and shadows and a rolling lidar sweep (see plvo.data.synth.twin), and the
+KITTI pose file, with traffic, sun and shadows and a rolling lidar sweep (see plvo_synth.twin), and the
 imperfections of KITTI's sensors (twin.realism; --ideal: none, the twins as they were before). A raw drive's twin
 (--raw-drive ROOT --seq DATE_drive_NNNN) follows the drive's oxts and is written in KITTI's raw layout under
 OUT/DATE, read as the real drive is (`plvo-viz --root OUT --seq DATE_drive_NNNN`).
@@ -24,7 +24,7 @@ from plvo.errors import SynthError
 
 # The generators (numpy, open3d, the renderer) and tqdm are imported when a sequence is made: `plvo synth --help`
 # answers at once.
-# plvo.data.synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/test_cli_terminal.py checks that they agree)
+# plvo_synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/test_cli_terminal.py checks that they agree)
 LIDAR_NAMES = ("hdl64", "hdl32", "vlp16", "os128")
 
 
@@ -85,8 +85,8 @@ def run(args: argparse.Namespace) -> int:
         raise SynthError("--ideal: for twins (--follow, --twins, --raw-drive); the town's sensors are ideal already")
     from tqdm import tqdm
 
-    from plvo.data.synth import SynthSettings, generate_sequence
-    from plvo.data.synth.generate import check_request
+    from plvo_synth import SynthSettings, generate_sequence
+    from plvo_synth.generate import check_request
 
     args.frames = _town_frames(args.frames)
     settings = SynthSettings(args.frames, args.seed, args.speed, args.loop, args.stops, args.exposure_change,
@@ -116,9 +116,9 @@ def run(args: argparse.Namespace) -> int:
 
 def run_twins(args: argparse.Namespace) -> int:
     """--follow (one twin as --seq) or --twins (several, in parallel): generate, report frames a second."""
-    from plvo.data.synth.twin.batch import TwinJob, ensure_twins, parse_twins, twin_jobs
-    from plvo.data.synth.twin.generate import TwinSettings
     from plvo_app.twin_progress import twin_progress
+    from plvo_synth.twin.batch import TwinJob, ensure_twins, parse_twins, twin_jobs
+    from plvo_synth.twin.generate import TwinSettings
 
     if args.follow and args.twins:
         raise SynthError("--follow and --twins: give one (--twins follows --kitti-poses/NN.txt)")
@@ -131,7 +131,7 @@ def run_twins(args: argparse.Namespace) -> int:
             raise SynthError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ...)")
         jobs = twin_jobs(parse_twins(args.twins), args.kitti_poses, base)
     else:
-        from plvo.data.synth.twin.generate import check_twin_request
+        from plvo_synth.twin.generate import check_twin_request
 
         check_twin_request(args.out, args.seq, base, args.overwrite)
         jobs = [TwinJob(args.seq, base)]
@@ -147,7 +147,7 @@ def run_twins(args: argparse.Namespace) -> int:
 
 
 def _realism(args: argparse.Namespace):
-    from plvo.data.synth.twin.realism import IDEAL, REALISTIC
+    from plvo_synth.twin.realism import IDEAL, REALISTIC
 
     return IDEAL if args.ideal else REALISTIC
 
@@ -156,8 +156,8 @@ def run_raw_twin(args: argparse.Namespace) -> int:
     """--raw-drive ROOT --seq DATE_drive_NNNN: the drive's twin in KITTI's raw layout under --out."""
     from tqdm import tqdm
 
-    from plvo.data.synth.twin.generate import TwinSettings
-    from plvo.data.synth.twin.raw_drive import check_raw_request, generate_raw_twin, parse_drive_name
+    from plvo_synth.twin.generate import TwinSettings
+    from plvo_synth.twin.raw_drive import check_raw_request, generate_raw_twin, parse_drive_name
 
     if args.follow or args.twins:
         raise SynthError("--raw-drive and --follow/--twins: give one (a raw drive's twin follows its own oxts)")

@@ -1,6 +1,6 @@
 """Run the pipeline on a sequence, streaming every stage to a Rerun recording and a viser web viewer.
 
-With no --root and no $KITTI_ROOT it runs the synthetic town (plvo.data.synth, generated once and cached under
+With no --root and no $KITTI_ROOT it runs the synthetic town (plvo_synth, generated once and cached under
 $PLVO_CACHE or ~/.cache/plvo). Outputs (never overwriting an earlier run): recordings/<seq>_<time>.rrd and
 results/<seq>_<time>/ with poses.txt (cam0, first frame at identity; KITTI format, or TUM with the data's
 timestamps under --format tum; written only when the run completed), truth.txt (the data's ground truth of the same
@@ -15,8 +15,8 @@ its frames is marked "failed" with its reason and says so on one line. Output no
 terminal, `| head`) is dropped and the run goes on. The faults and what each leaves: docs/faults.md.
 """
 
-# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
-# imported inside the functions that use them: `plvo --help` imports every command module.
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.runtime.system alone imports in ~1 s)
+#  are imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import argparse
@@ -172,8 +172,8 @@ def _synthetic_town(frames: slice | None = None) -> tuple[Path, str]:
     from plvo.data.registry import ROOT_ENV
 
     try:
-        from plvo.data.synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, default_sequence_root
-        from plvo.data.synth.cache import cache_dir, cached_frames, settings_hash
+        from plvo_synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, default_sequence_root
+        from plvo_synth.cache import cache_dir, cached_frames, settings_hash
     except ImportError:
         raise DatasetError(f"no dataset: give --root DIR or set ${ROOT_ENV} (the synthetic town is not "
                            "available in this build)") from None
@@ -321,13 +321,13 @@ def _write_summary(outs: Outputs, system, dataset, status: str, reason: str, fps
 
 
 def _run_frames(system, dataset, at: list[int]) -> float:
-    """Step through the dataset (plvo.run.step_through: each frame read while the previous one is tracked, the
+    """Step through the dataset (plvo.runtime.run.step_through: each frame read while the previous one is tracked, the
     run started again from its first frame where the System finds it must) with a progress bar, then let the
     workers finish; returns frames a second over all of it (what a user waits for, a restart's frames included in
     the time). `at` holds the frame being processed. Ctrl-C propagates."""
     from tqdm import tqdm
 
-    from plvo.run import step_through
+    from plvo.runtime.run import step_through
 
     t0 = time.perf_counter()
     with tqdm(total=len(dataset), unit="frame", desc=dataset.sequence, dynamic_ncols=True,
@@ -373,7 +373,7 @@ def run(args: argparse.Namespace) -> int:
         from plvo_app.cmd_view import view
 
         return view(args.replay, port=args.port, serve=serve)
-    from plvo.system import System
+    from plvo.runtime.system import System
     from plvo_app.rerun_recorder import RerunRecorder
 
     cfg = _resolve_config(args)

@@ -7,8 +7,8 @@ Writes DIR/orb.npz, DIR/lbd.npz (load with plvo.loop.vocabulary.Vocabulary.load)
 were trained on). Only descriptors are stored, never images. Point LoopConfig.vocab_dir at DIR to use them.
 """
 
-# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
-# imported inside the functions that use them: `plvo --help` imports every command module.
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.runtime.system alone imports in ~1 s)
+#  are imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import argparse
@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         if args.synth > 0:
             from tqdm import tqdm
 
-            from plvo.data.synth import generate_sequence
+            from plvo_synth import generate_sequence
 
             with tqdm(total=args.synth, unit="frame", desc="synthetic town", disable=not show) as bar:
                 generate_sequence(tmp, "00", args.synth, seed=args.synth_seed,

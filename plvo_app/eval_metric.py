@@ -3,7 +3,7 @@
 An estimate (`--est`, repeatable) is a KITTI or TUM pose file, or a plvo results folder: its poses.txt, the
 summary.json that plvo-viz writes at the end of a run ("run", "sequence", "frame_indices": the dataset's frame numbers
 of poses.txt's lines, "status") and, when the data had ground truth, truth.txt (the truth of those frames, in
-poses.txt's format). Its truth is `--gt` (cut to the run's frames, or paired by time: plvo.eval.associate), else the
+poses.txt's format). Its truth is `--gt` (cut to the run's frames, or paired by time: plvo_eval.associate), else the
 folder's truth.txt. One estimate prints the detailed report; several print one row each.
 
 Imported by `plvo --help` (the arguments): numpy, matplotlib and the metric come in inside the functions.
@@ -25,11 +25,11 @@ from plvo_app.run_summary import POSES_FILE, SUMMARY_FILE, TRUTH_FILE
 if TYPE_CHECKING:
     import numpy as np
 
-    from plvo.eval.associate import Pairing, PoseFile
-    from plvo.eval.kitti_metric import RelativeError, SequenceEvaluation
+    from plvo_eval.associate import Pairing, PoseFile
+    from plvo_eval.kitti_metric import RelativeError, SequenceEvaluation
 
-SHORT_DEFAULT = "10,20,40"  # plvo.eval.kitti_metric.SHORT_LENGTHS, spelled here so that --help imports no numpy
-MAX_DT_DEFAULT = 0.02  # plvo.eval.associate.MAX_DT_S (evo's)
+SHORT_DEFAULT = "10,20,40"  # plvo_eval.kitti_metric.SHORT_LENGTHS, spelled here so that --help imports no numpy
+MAX_DT_DEFAULT = 0.02  # plvo_eval.associate.MAX_DT_S (evo's)
 
 
 def add_metric_arguments(p: argparse.ArgumentParser) -> None:
@@ -130,7 +130,7 @@ def _summary_frames(path: Path, summary: dict[str, Any], n_poses: int) -> np.nda
 
 def read_results_folder(folder: Path) -> Estimate:
     """A results folder: poses.txt, with summary.json's name and frames when there is one, and truth.txt."""
-    from plvo.eval.associate import read_pose_file
+    from plvo_eval.associate import read_pose_file
 
     summary = _summary(folder)
     poses_file = folder / POSES_FILE
@@ -148,7 +148,7 @@ def read_results_folder(folder: Path) -> Estimate:
 
 
 def read_estimate(path: Path, frames_arg: str | None) -> Estimate:
-    from plvo.eval.associate import read_pose_file
+    from plvo_eval.associate import read_pose_file
 
     if path.is_dir():
         est = read_results_folder(path)
@@ -172,7 +172,7 @@ def _frames_arg(frames_arg: str, n_gt: int, gt: Path) -> np.ndarray:
 
 def pair_estimate(est: Estimate, gt: PoseFile | None, frames_arg: str | None, max_dt: float) -> tuple[Path, Pairing]:
     """An estimate with its truth: --gt (read already, None if not given) or the folder's truth.txt."""
-    from plvo.eval.associate import frames_text, pair, pair_by_lines, read_pose_file, times_beside, with_times
+    from plvo_eval.associate import frames_text, pair, pair_by_lines, read_pose_file, times_beside, with_times
 
     if gt is None:
         if est.truth is None:
@@ -209,8 +209,8 @@ def _check_frames_arg(frames_arg: str | None, estimates: list[Estimate]) -> None
 # ---- output ------------------------------------------------------------------------------------------------------
 
 def metric_json(ev: SequenceEvaluation, gt: Path, est: Path) -> dict:
-    """The --json object: the files, then the figures (plvo.eval.kitti_metric.evaluation_json)."""
-    from plvo.eval.kitti_metric import evaluation_json
+    """The --json object: the files, then the figures (plvo_eval.kitti_metric.evaluation_json)."""
+    from plvo_eval.kitti_metric import evaluation_json
 
     return {"gt": str(gt), "est": str(est), **evaluation_json(ev)}
 
@@ -310,8 +310,8 @@ def _plan_plots(plot_dir: Path | None) -> None:
     """Refuse the plots before any work if their folder is a file or a plot exists (docs/faults.md, "Outputs")."""
     if plot_dir is None:
         return
-    from plvo.eval.metric_plots import plot_paths
     from plvo_app.run_outputs import refuse_existing
+    from plvo_eval.metric_plots import plot_paths
 
     if plot_dir.exists() and not plot_dir.is_dir():
         raise OutputError(f"--plot {plot_dir}: is a file, not a folder for the plots")
@@ -322,7 +322,7 @@ def _plan_plots(plot_dir: Path | None) -> None:
 
 
 def _write_plots(runs: list[Run], plot_dir: Path) -> dict[str, Path]:
-    from plvo.eval.metric_plots import PlottedRun, write_metric_plots
+    from plvo_eval.metric_plots import PlottedRun, write_metric_plots
 
     plotted = [PlottedRun(r.estimate.name, r.pairing.gt, r.pairing.est, r.pairing.frames, r.pairing.times,
                           r.ev.ate_se3) for r in runs]
@@ -334,8 +334,8 @@ def _write_plots(runs: list[Run], plot_dir: Path) -> dict[str, Path]:
 
 def run_metric(args: argparse.Namespace) -> int:
     """The command: read and pair every estimate, evaluate each, print, plot."""
-    from plvo.eval.associate import read_pose_file, with_times
-    from plvo.eval.kitti_metric import evaluate_sequence
+    from plvo_eval.associate import read_pose_file, with_times
+    from plvo_eval.kitti_metric import evaluate_sequence
 
     short = parse_lengths(args.short)
     if not (math.isfinite(args.max_dt) and args.max_dt > 0):

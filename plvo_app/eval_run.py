@@ -27,16 +27,16 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from plvo import provenance
 from plvo.config import ABLATIONS
 from plvo.data import ROOT_ENV
 from plvo.errors import OutputError, PlvoError
-from plvo.eval.kiss import KissOptions
-from plvo.eval.report import build_report, report_markdown
-from plvo.eval.report_files import write_report
-from plvo.eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
 from plvo_app.run_outputs import refuse_existing
 from plvo_app.source_args import add_source_arguments
+from plvo_eval import provenance
+from plvo_eval.kiss import KissOptions
+from plvo_eval.report import build_report, report_markdown
+from plvo_eval.report_files import write_report
+from plvo_eval.runner import SequenceSource, TaskResult, build_specs, execute, kiss_threads, with_threads
 
 log = logging.getLogger(__name__)
 # the paper's Ours (*), (-), (#) and point-only, then each lidar-side component of plvo's own switched off
@@ -171,13 +171,13 @@ def gather_sources(args: argparse.Namespace) -> list[SequenceSource]:
 def twin_sources(args: argparse.Namespace) -> list[SequenceSource]:
     """Generate the --twins that are missing or stale under --twin-root (in parallel, with a progress bar), then
     one source per twin, labelled twinNN."""
-    from plvo.data.synth.twin.batch import ensure_twins, parse_twins, twin_jobs
-    from plvo.data.synth.twin.generate import TwinSettings
     from plvo_app.twin_progress import twin_progress
+    from plvo_synth.twin.batch import ensure_twins, parse_twins, twin_jobs
+    from plvo_synth.twin.generate import TwinSettings
 
     if args.kitti_poses is None:
         raise PlvoError("--twins: give --kitti-poses DIR (the folder of KITTI pose files 00.txt ... 10.txt)")
-    from plvo.data.synth.twin.realism import IDEAL, REALISTIC
+    from plvo_synth.twin.realism import IDEAL, REALISTIC
 
     base = TwinSettings("", args.frames, args.twin_seed, args.traffic, args.lidar,
                         realism=IDEAL if args.ideal_twins else REALISTIC)

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from plvo.recording import FanOut, RunInfo
-from plvo.system import System
+from plvo.runtime.system import System
 from plvo_app.recording_levels import LEVELS, DetailOptions
 from plvo_app.rerun_recorder import ENTITIES, RerunOptions, RerunRecorder
 

@@ -8,8 +8,8 @@ frame whose pose departs by more than the tolerance, and the first stage result 
 matches, inliers, depth priors, keyframe decisions, back-end and loop counts; timings are not compared).
 """
 
-# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.system alone imports in ~1 s) are
-# imported inside the functions that use them: `plvo --help` imports every command module.
+# The pipeline, the datasets and the viewers (gtsam, open3d, rerun, viser: plvo.runtime.system alone imports in ~1 s)
+#  are imported inside the functions that use them: `plvo --help` imports every command module.
 from __future__ import annotations
 
 import json
@@ -246,7 +246,7 @@ def _list(v: Any) -> list:
 def rerun_inputs(dataset, cfg: SystemConfig, out: Path) -> None:
     """Run `dataset` with `cfg`, recorded at the summary level to `out`."""
     from plvo.recording import RunInfo
-    from plvo.system import System
+    from plvo.runtime.system import System
     from plvo_app.recording_levels import DetailOptions
     from plvo_app.rerun_recorder import RerunOptions, RerunRecorder
 

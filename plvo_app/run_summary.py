@@ -45,7 +45,7 @@ def _relative_json(rel) -> dict[str, Any]:
 
 def accuracy(truth, poses) -> dict[str, Any]:
     """The figures of an estimate against its truth (both (N,4,4), cam0), as summary.json holds them."""
-    from plvo.eval.kitti_metric import evaluate_sequence
+    from plvo_eval.kitti_metric import evaluate_sequence
 
     ev = evaluate_sequence(truth, poses)
     devkit = None

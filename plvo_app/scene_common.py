@@ -200,7 +200,7 @@ def gt_in_estimate_world(info: RunInfo) -> np.ndarray | None:
 
 class EstimateTrail:
     """Every frame's estimated position, kept in the frame of the keyframe it was tracked from, so that the back
-    end's refinement of a keyframe moves the frames tracked from it (as plvo.system.System.poses does)."""
+    end's refinement of a keyframe moves the frames tracked from it (as plvo.runtime.system.System.poses does)."""
 
     def __init__(self) -> None:
         self.frames: list[int] = []

@@ -11,7 +11,7 @@ they are the result. A log record is written above the progress bars (tqdm.write
 no line is glued to a bar. `setup_terminal` (plvo_app.cli) sets the verbosity; `progress_enabled` says whether a
 command draws its bars; `file_level` is the level of the run's log. The root logger's level is the lowest that
 anything wants (the terminal or run.log), which is also the level the worker processes ship records back at
-(plvo.workers): DEBUG records are made, in the workers too, only under -vv.
+(plvo.runtime.workers): DEBUG records are made, in the workers too, only under -vv.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The progress bar and one line a twin that `plvo synth --twins/--follow` and `plvo eval run --twins` show while
-plvo.data.synth.twin.batch.ensure_twins generates (or keeps) KITTI twins."""
+plvo_synth.twin.batch.ensure_twins generates (or keeps) KITTI twins."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Image statistics of a camera clip, the same measures on real KITTI frames and on a twin's: noise against
 brightness, edge sharpness, vignetting, exposure steps, saturation, and ORB / line counts and frame-to-frame match
-rates (plvo.features). What plvo.data.synth.twin.camera_effects' settings are measured with.
+rates (plvo.features). What plvo_synth.twin.camera_effects' settings are measured with.
 
 Usage: python scripts/camera_stats.py NAME=FOLDER [NAME=FOLDER ...] [--frames A:B] [--json OUT.json]
 e.g.   python scripts/camera_stats.py real04=../shared/data/kitti/sequences/04/image_0 \

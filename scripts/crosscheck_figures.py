@@ -20,11 +20,11 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset
-from plvo.eval.kiss import KissOptions, run_kiss
-from plvo.eval.kitti_metric import absolute_trajectory_error
-from plvo.eval.kitti_variants import variant
-from plvo.eval.tasks import peer_ways
-from plvo.run import run_dataset
+from plvo.runtime.run import run_dataset
+from plvo_eval.kiss import KissOptions, run_kiss
+from plvo_eval.kitti_metric import absolute_trajectory_error
+from plvo_eval.kitti_variants import variant
+from plvo_eval.tasks import peer_ways
 
 
 def max_error(ds, poses) -> float:
@@ -81,7 +81,7 @@ def main() -> None:
     if args.twin_root is not None:
         rows[f"twin {args.twin} every 3rd frame"] = run(args.twin_root, args.twin, slice(None, None, 3), kiss=True)
     if args.town:
-        from plvo.data.synth import generate_sequence
+        from plvo_synth import generate_sequence
 
         town = generate_sequence(tmp / "town", "00", n_frames=150, seed=177, speed_mps=15.0, loop=True)
         late = variant(town, "00", tmp / "town_late", 149, scan_of=lambda i: i + 1)

@@ -23,9 +23,9 @@ import numpy as np
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset, parse_frames
 from plvo.depth.extract import extract_depth_priors
-from plvo.eval.kitti_metric import heading_rotation
 from plvo.features.extract import extract_features
 from plvo.geometry import se3
+from plvo_eval.kitti_metric import heading_rotation
 
 GAP = 3
 

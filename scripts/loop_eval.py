@@ -50,10 +50,10 @@ class _Collect:
 def _run(root: str, seq: str, setting: str) -> dict:
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.eval.kitti_metric import evaluate_sequence
-    from plvo.eval.revisits import detection_stats
-    from plvo.eval.tasks import anchor, metrics_dict
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
+    from plvo_eval.kitti_metric import evaluate_sequence
+    from plvo_eval.revisits import detection_stats
+    from plvo_eval.tasks import anchor, metrics_dict
 
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": SETTINGS[setting]})
     ds = KittiOdometry(root, seq)

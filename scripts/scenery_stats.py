@@ -1,6 +1,6 @@
 """How hard a clip's scenery is for the camera and the lidar, measured alike on real KITTI frames and on a twin's:
 ORB and line counts, how often consecutive frames' ORB matches are ambiguous, the match rate, and the lidar's
-foliage signature. What plvo.data.synth.twin.scenery_realism's densities are calibrated with.
+foliage signature. What plvo_synth.twin.scenery_realism's densities are calibrated with.
 
 Usage: python scripts/scenery_stats.py NAME=FOLDER [NAME=FOLDER ...] [--frames A:B] [--json OUT.json]
 e.g.   python scripts/scenery_stats.py real04=../shared/data/kitti/sequences/04 \
@@ -45,7 +45,7 @@ ISOLATED_M = 0.5
 MAX_GAP_DEG = 0.6
 HIGH_M = 0.3  # above the sensor (1.73 m over the road on KITTI's car): 2 m over the road
 MIN_RING_WRAPS = 32  # a file with this many azimuth wrap-arounds is stored ring by ring
-# HDL-64E nominal elevations (as plvo.data.synth.sensors), the start for a twin's ring assignment
+# HDL-64E nominal elevations (as plvo_synth.sensors), the start for a twin's ring assignment
 NOMINAL_ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.8, 32)])
 
 

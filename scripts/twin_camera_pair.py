@@ -1,5 +1,5 @@
 """One twin world seen by two cameras: the ideal camera (the old twins') and the realistic one (KITTI cam0's
-imperfections, plvo.data.synth.twin.camera_effects), frame by frame, so that scripts/camera_stats.py can set the
+imperfections, plvo_synth.twin.camera_effects), frame by frame, so that scripts/camera_stats.py can set the
 camera's effect alone beside the real frames. The world, calibration and lidar are the ideal twin's.
 
 Usage: python scripts/twin_camera_pair.py FOLLOW SEQ A:B OUT
@@ -15,11 +15,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from plvo.data.synth import sensors
-from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism
-from plvo.data.synth.twin.follow import PoseInterpolator
-from plvo.data.synth.twin.generate import TwinSettings, build_twin
-from plvo.data.synth.twin.realism import IDEAL
+from plvo_synth import sensors
+from plvo_synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism
+from plvo_synth.twin.follow import PoseInterpolator
+from plvo_synth.twin.generate import TwinSettings, build_twin
+from plvo_synth.twin.realism import IDEAL
 
 
 def main(argv: list[str]) -> int:

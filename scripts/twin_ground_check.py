@@ -2,7 +2,7 @@
 
 Usage: python scripts/twin_ground_check.py KITTI_POSES_DIR     (prints a Markdown table)
 Where two passes over one place carry ground-truth heights that disagree, the ground follows the lower one
-(plvo.data.synth.twin.layout): the camera of the higher pass floats by the disagreement.
+(plvo_synth.twin.layout): the camera of the higher pass floats by the disagreement.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from plvo.data.synth.sensors import CAMERA_HEIGHT_M
-from plvo.data.synth.twin.follow import load_followed
-from plvo.data.synth.twin.layout import Layout
+from plvo_synth.sensors import CAMERA_HEIGHT_M
+from plvo_synth.twin.follow import load_followed
+from plvo_synth.twin.layout import Layout
 
 
 def main(argv: list[str]) -> int:

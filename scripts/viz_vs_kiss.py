@@ -2,7 +2,7 @@
 
 usage: .venv/bin/python scripts/viz_vs_kiss.py ROOT SEQ ROUNDS [OUT.json]
 Each round runs `plvo-viz --root ROOT --seq SEQ --no-serve` (the defaults: worker processes, recording on) into a
-temporary folder, then KISS-ICP over the same scans read from disk (plvo.eval.bench.kiss_fps) in a new Python
+temporary folder, then KISS-ICP over the same scans read from disk (plvo_eval.bench.kiss_fps) in a new Python
 process; prints each pair and the median of the ratios, and writes them as JSON when OUT.json is given.
 """
 import json
@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-KISS = ("import sys; from plvo.data.registry import open_dataset; from plvo.eval.bench import kiss_fps; "
+KISS = ("import sys; from plvo.data.registry import open_dataset; from plvo_eval.bench import kiss_fps; "
         "print(kiss_fps(open_dataset(sys.argv[1], sys.argv[2])))")
 
 

@@ -102,7 +102,7 @@ def restart_info(n: int, at_frame: int) -> RunInfo:
 
 
 def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1, start: bool = True) -> None:
-    """Feed `recorder` n frames as plvo.system.System does: keyframes every `every` frames (and at LOST_FRAME),
+    """Feed `recorder` n frames as plvo.runtime.system.System does: keyframes every `every` frames (and at LOST_FRAME),
     the back end's results `backend_lag` frames late (at the keyframe's frame index), a loop at the end.
     start: begin with on_run_start (not after an on_restart, which stands for it)."""
     rng = np.random.default_rng(0)

@@ -48,7 +48,7 @@ def kitti_root() -> Path:
     return KITTI_ROOT
 
 
-# --- synthetic town (plvo.data.synth) -------------------------------------------------------------------------
+# --- synthetic town (plvo_synth) -------------------------------------------------------------------------
 
 SYNTH_SEQ_FRAMES = 20
 
@@ -57,7 +57,7 @@ SYNTH_SEQ_FRAMES = 20
 def synth_sequence_factory(tmp_path_factory):
     """Callable (n_frames, seed=0, **generate_sequence kwargs) -> root of a synthetic sequence '00' in the KITTI
     layout, generated once per session for each distinct set of arguments (e.g. a longer or a loop sequence)."""
-    from plvo.data.synth import generate_sequence
+    from plvo_synth import generate_sequence
 
     made: dict[tuple, Path] = {}
 
@@ -78,7 +78,7 @@ def synth_seq(synth_sequence_factory) -> Path:
     return synth_sequence_factory(SYNTH_SEQ_FRAMES, seed=0, write_depth=True)
 
 
-# --- KITTI twins (plvo.data.synth.twin) -----------------------------------------------------------------------
+# --- KITTI twins (plvo_synth.twin) -----------------------------------------------------------------------
 
 TWIN_FRAMES = "60:80"  # 16 m at 8 m/s (07 starts standing)
 TWIN_SEQUENCE = "07"
@@ -87,7 +87,7 @@ TWIN_SEQUENCE = "07"
 @pytest.fixture(scope="session")
 def twin_root(kitti_root, tmp_path_factory) -> Path:
     """Root of a 20-frame KITTI twin of 07 (frames 60:80, 8 movers, depth written); generated once per session."""
-    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+    from plvo_synth.twin.generate import TwinSettings, generate_twin
 
     root = tmp_path_factory.mktemp("twin07")
     settings = TwinSettings(str(kitti_root / "poses" / f"{TWIN_SEQUENCE}.txt"), TWIN_FRAMES, seed=0, traffic=8,
@@ -99,8 +99,8 @@ def twin_root(kitti_root, tmp_path_factory) -> Path:
 def ideal_twin_root(kitti_root, tmp_path_factory) -> Path:
     """The same twin with ideal sensors (plvo synth --ideal): raw sweeps, each return at its own time, and no sensor
     imperfections, for the tests of deskewing against the surfaces' truth."""
-    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
-    from plvo.data.synth.twin.realism import IDEAL
+    from plvo_synth.twin.generate import TwinSettings, generate_twin
+    from plvo_synth.twin.realism import IDEAL
 
     root = tmp_path_factory.mktemp("twin07_ideal")
     settings = TwinSettings(str(kitti_root / "poses" / f"{TWIN_SEQUENCE}.txt"), TWIN_FRAMES, seed=0, traffic=8,
@@ -177,8 +177,8 @@ def outback_twin(tmp_path_factory) -> Path:
     loop at 8 m/s and driven back 3.5 m to the left, 20 m past the start: 153 frames, the return seeing each place
     from the other side 90-140 frames later (more than loop.min_keyframe_gap keyframes), and the last 20 m there
     for the place nodes of the way back (lidar_place_reach_m). Generated once per session (~1-1.5 min)."""
-    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
-    from plvo.data.synth.twin.realism import IDEAL
+    from plvo_synth.twin.generate import TwinSettings, generate_twin
+    from plvo_synth.twin.realism import IDEAL
 
     root = tmp_path_factory.mktemp("outback")
     poses = _out_and_back_poses()

@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from plvo.data.synth.sensors import KITTI_CALIB_00_TEXT, T_CAM_VELO
 from plvo.data.trajectory import write_kitti_poses
+from plvo_synth.sensors import KITTI_CALIB_00_TEXT, T_CAM_VELO
 
 LIDAR_HEIGHT_M = 1.73
 

@@ -10,7 +10,7 @@ import os
 import time
 from pathlib import Path
 
-from plvo.eval.tasks import RunSpec, TaskOutput, execute_task
+from plvo_eval.tasks import RunSpec, TaskOutput, execute_task
 
 TRACE_ENV = "PLVO_TEST_RAY_TRACE"
 DELAY_ENV = "PLVO_TEST_RAY_DELAY_S"

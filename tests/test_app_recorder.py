@@ -1,6 +1,6 @@
 """The Rerun recorder writes every entity of the table at the frames it belongs to (late back-end results at their
 keyframe's frame), colours the tracker's matches, logs its decisions, and the .rrd reads back into the viewer's
-store intact. Driven by a fake run (tests/app_fakes.py) shaped like plvo.system.System's: no dataset needed."""
+store intact. Driven by a fake run (tests/app_fakes.py) shaped like plvo.runtime.system.System's: no dataset needed."""
 
 from __future__ import annotations
 

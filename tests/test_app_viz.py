@@ -128,7 +128,7 @@ def test_summary_scores_the_run_as_eval_metric_does(kitti_run, kitti_root):
     """The end of a run with truth: summary.json and the terminal's last lines hold the figures `plvo eval metric`
     gives for poses.txt against the sequence's own truth file cut to the frames run; truth.txt is that cut."""
     from plvo.data.trajectory import read_kitti_poses
-    from plvo.eval.kitti_metric import evaluate_sequence
+    from plvo_eval.kitti_metric import evaluate_sequence
 
     cwd, proc, _, out = kitti_run
     summary = json.loads((out / "summary.json").read_text())
@@ -254,8 +254,8 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
     nothing is generated; an empty cache is shown generating with a progress bar (the generator stubbed)."""
     import argparse
 
-    from plvo.data.synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, cache
     from plvo_app import cmd_viz
+    from plvo_synth import DEFAULT_SEQUENCE, DEFAULT_SETTINGS, cache
 
     monkeypatch.delenv("KITTI_ROOT", raising=False)
     monkeypatch.setenv("PLVO_CACHE", str(tmp_path / "cache"))
@@ -269,7 +269,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
             progress(i, stop)
         return synth_seq
 
-    monkeypatch.setattr("plvo.data.synth.default_sequence_root", fake_generate)
+    monkeypatch.setattr("plvo_synth.default_sequence_root", fake_generate)
     dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
     err = capsys.readouterr().err
     assert calls == [5] and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5  # the frames asked, no more
@@ -289,8 +289,8 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
 
 
 def test_library_imports_no_viewer():
-    code = ("import sys, plvo.system, plvo.recording, plvo.results; "
-            "s = plvo.system.System(__import__('plvo.config').config.SystemConfig()); "
+    code = ("import sys, plvo.runtime.system, plvo.recording, plvo.results; "
+            "s = plvo.runtime.system.System(__import__('plvo.config').config.SystemConfig()); "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('rerun', 'viser')))")
     out = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

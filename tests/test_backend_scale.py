@@ -69,7 +69,7 @@ def test_scale_corrected_keyframe_is_where_the_adjustment_starts(synth_sequence_
     import plvo.backend.worker as worker
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     events: list[tuple[str, np.ndarray]] = []
     correct, optimize = worker.correct_scale, worker.optimize

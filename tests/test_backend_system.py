@@ -78,7 +78,7 @@ def _memoise(monkeypatch) -> None:
 def runs(synth_sequence_factory):
     from plvo.data.kitti import KittiOdometry
     from plvo.lidar import registration
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     ds = KittiOdometry(synth_sequence_factory(FRAMES, seed=SEED), "00")
     base = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": {"enabled": False}})

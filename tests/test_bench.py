@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from plvo.errors import ConfigError
-from plvo.eval.bench import BUDGET_MS, parse_stages, stage_stats
 from plvo_app import cmd_bench
 from plvo_app.cli import main
+from plvo_eval.bench import BUDGET_MS, parse_stages, stage_stats
 
 STAT_KEYS = {"source", "n", "median_ms", "p90_ms", "mean_ms", "max_ms", "budget_ms", "within_budget"}
 
@@ -154,7 +154,7 @@ def test_bad_stage_name_is_one_line_error(tmp_path, capsys):
 def test_loop_correction_figures_count_only_corrections():
     """The loop worker times every keyframe; the correction stages are zero unless a loop was accepted, and their
     figures are over the corrections alone (none at all on a sequence without a revisit)."""
-    from plvo.eval.bench import SystemRun, system_stages
+    from plvo_eval.bench import SystemRun, system_stages
 
     timings = {"loop_query": [0.001, 0.002, 0.003], "loop_correct": [0.0, 0.004, 0.0],
                "loop_global_ba": [0.0, 0.5, 0.0], "loop_apply": [0.0, 0.0, 0.0]}
@@ -171,7 +171,7 @@ def test_deployed_runs_come_before_the_frames_are_preloaded(synth_seq, monkeypat
     frames of 04 in memory every process of the run took ~10 % more CPU), i.e. before load_frames."""
     from plvo.config import SystemConfig
     from plvo.data.registry import open_dataset
-    from plvo.eval import bench
+    from plvo_eval import bench
 
     order = []
     real_load = bench.load_frames
@@ -200,7 +200,7 @@ def _fails() -> None:
 def test_a_fresh_process_runs_the_call_and_reports_its_failure_in_one_line():
     import os
 
-    from plvo.eval.bench import in_fresh_process
+    from plvo_eval.bench import in_fresh_process
 
     pid, _ = in_fresh_process(_pid_and_module_count)
     assert pid != os.getpid()
@@ -234,7 +234,7 @@ def test_kiss_icp_reads_the_scans_alone_inside_its_clock_and_its_setup_apart(syn
     import time
 
     from plvo.data.registry import open_dataset
-    from plvo.eval.bench import kiss_run
+    from plvo_eval.bench import kiss_run
 
     dataset = _SlowScans(open_dataset(synth_seq, None, slice(0, 4)))
     started = time.perf_counter()
@@ -251,7 +251,7 @@ def test_the_kitti_scan_reader_is_the_frames_scan(synth_seq):
     import numpy as np
 
     from plvo.data.registry import open_dataset
-    from plvo.eval.kiss import scan_reader
+    from plvo_eval.kiss import scan_reader
 
     dataset = open_dataset(synth_seq, None, slice(2, 5))
     read = scan_reader(dataset)
@@ -285,7 +285,7 @@ def test_the_ratio_s_interval_says_what_a_bench_resolves():
     where every run agrees, and narrower the more runs there are of the same spread."""
     import numpy as np
 
-    from plvo.eval.bench import ratio_interval
+    from plvo_eval.bench import ratio_interval
 
     assert ratio_interval([0.9, 1.1]) is None
     same = ratio_interval([0.9] * 7)
@@ -300,7 +300,7 @@ def test_the_ratio_s_interval_says_what_a_bench_resolves():
 def test_the_bench_table_gives_the_ratio_s_interval():
     """The summary printed after a bench carries the interval, here for a committed bench's 21 runs (their ratios
     are in the file; the interval was added to the report after it was written)."""
-    from plvo.eval.bench import ratio_interval
+    from plvo_eval.bench import ratio_interval
 
     report = json.loads((Path(__file__).parents[1] / "docs/results/bench/04_252c0a2_21.json").read_text())
     dep = report["deployed"]

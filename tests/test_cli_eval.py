@@ -13,9 +13,9 @@ import pytest
 from faults_table import fault
 
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
-from plvo.eval.kitti_metric import evaluate_sequence
 from plvo.geometry import se3
 from plvo_app.cli import main
+from plvo_eval.kitti_metric import evaluate_sequence
 
 
 def _line(n: int, spacing: float = 0.5) -> np.ndarray:

@@ -120,7 +120,8 @@ def test_quiet_shows_no_bar_and_no_log_line(runs):
 
 def test_verbosity_levels_of_terminal_root_and_worker_processes():
     """In a fresh process (no handler on the root: as plvo and plvo-viz start): the terminal handler's level, the
-    root's (what run.log and the worker processes get: plvo.workers ships records at "plvo"'s level), progress."""
+    root's (what run.log and the worker processes get: plvo.runtime.workers ships records at "plvo"'s level),
+    progress."""
     code = ("import json, logging; from plvo_app.cli import _setup_logging; from plvo_app import terminal; out = {}\n"
             "for v in (-1, 0, 1, 2):\n"
             "    _setup_logging(v); root = logging.getLogger()\n"
@@ -150,7 +151,7 @@ class ChattyCore:
 def test_worker_processes_ship_the_records_the_parent_wants(caplog, level):
     """A worker process makes and sends back records from the level "plvo" has where it is started: at INFO (the
     default, and -v) its DEBUG records are not even made; at DEBUG (-vv) they reach the parent (and run.log)."""
-    from plvo.workers import OrderedWorker
+    from plvo.runtime.workers import OrderedWorker
 
     with caplog.at_level(level, logger="plvo"):
         w = OrderedWorker("chatty", ChattyCore, (), "process")
@@ -185,8 +186,8 @@ def test_rejected_loop_candidates_are_debug(caplog):
 def test_no_candidate_rejection_logged_above_debug():
     """Every log call of the loop closing and the stages around it that says a candidate was rejected is DEBUG (a
     run of the town rejects dozens; the terminal got 30 of its 85 lines from them)."""
-    files = [*sorted((REPO / "plvo" / "loop").glob("*.py")), REPO / "plvo" / "system.py",
-             REPO / "plvo" / "worker_stages.py"]
+    files = [*sorted((REPO / "plvo" / "loop").glob("*.py")), REPO / "plvo" / "runtime" / "system.py",
+             REPO / "plvo" / "runtime" / "worker_stages.py"]
     loud = []
     for path in files:
         for node in ast.walk(ast.parse(path.read_text())):
@@ -266,9 +267,9 @@ def test_an_unknown_command_is_argparse_s_error(capsys):
 
 def test_help_names_what_the_libraries_define():
     """The names the light commands' --help lists without importing the modules that define them."""
-    from plvo.data.synth.twin.lidars import LIDAR_MODELS
-    from plvo.eval.bench import STAGE_GROUPS
     from plvo_app import cmd_bench, cmd_synth
+    from plvo_eval.bench import STAGE_GROUPS
+    from plvo_synth.twin.lidars import LIDAR_MODELS
 
     assert tuple(LIDAR_MODELS) == cmd_synth.LIDAR_NAMES
     assert STAGE_GROUPS == cmd_bench.STAGE_GROUPS

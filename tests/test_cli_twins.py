@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from plvo.data.synth.twin.batch import parse_twins, twin_jobs
 from plvo.errors import SynthError
 from plvo_app.cli import main
+from plvo_synth.twin.batch import parse_twins, twin_jobs
 
 
 def test_parse_twins():
@@ -68,8 +68,8 @@ def test_eval_run_twins_generates_once_and_tables(tmp_path, kitti_root, capsys):
 
 
 def test_batch_over_processes_is_complete_or_absent(tmp_path, kitti_root):
-    from plvo.data.synth.twin.batch import ensure_twins, is_current
-    from plvo.data.synth.twin.generate import TwinSettings
+    from plvo_synth.twin.batch import ensure_twins, is_current
+    from plvo_synth.twin.generate import TwinSettings
 
     jobs = twin_jobs(["05", "07"], kitti_root / "poses", TwinSettings("", "60:63", traffic=2))
     seen, finished = [], []
@@ -85,8 +85,8 @@ def test_batch_over_processes_is_complete_or_absent(tmp_path, kitti_root):
 
 def test_batch_over_ray(tmp_path, kitti_root):
     pytest.importorskip("ray", reason="ray is not installed (the 'compare' extra)")
-    from plvo.data.synth.twin.batch import ensure_twins, is_current
-    from plvo.data.synth.twin.generate import TwinSettings
+    from plvo_synth.twin.batch import ensure_twins, is_current
+    from plvo_synth.twin.generate import TwinSettings
 
     other = twin_jobs(["05"], kitti_root / "poses", TwinSettings("", "63:65", traffic=2))
     done = ensure_twins(other, tmp_path, workers=1, ray="local")
@@ -96,7 +96,7 @@ def test_batch_over_ray(tmp_path, kitti_root):
 
 
 def test_the_stage_of_a_killed_run_is_cleared(tmp_path, kitti_root):
-    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+    from plvo_synth.twin.generate import TwinSettings, generate_twin
 
     settings = TwinSettings(str(kitti_root / "poses" / "05.txt"), "60:62", traffic=0)
     generate_twin(tmp_path, "05", settings)
@@ -116,8 +116,8 @@ def test_a_stopped_twin_resumes_where_it_stopped(tmp_path, kitti_root):
     removed by the next run, and one that another process holds is refused."""
     import filecmp
 
-    from plvo.data.synth.generate import _stage_lock
-    from plvo.data.synth.twin.generate import TwinSettings, generate_twin
+    from plvo_synth.generate import _stage_lock
+    from plvo_synth.twin.generate import TwinSettings, generate_twin
 
     settings = TwinSettings(str(kitti_root / "poses" / "07.txt"), "60:66", traffic=6)
     whole = tmp_path / "whole"

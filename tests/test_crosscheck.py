@@ -12,10 +12,10 @@ import pytest
 
 from plvo.config import CrossCheckConfig, SystemConfig
 from plvo.data.registry import open_dataset
-from plvo.eval.kiss import run_kiss
-from plvo.eval.kitti_variants import variant
-from plvo.run import run_dataset
+from plvo.runtime.run import run_dataset
 from plvo.tracking.lidar_check import LidarOdometer
+from plvo_eval.kiss import run_kiss
+from plvo_eval.kitti_variants import variant
 
 SEQ = "04"
 

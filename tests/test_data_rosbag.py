@@ -114,7 +114,7 @@ def test_frame_selection_and_pickling(town, tmp_path):
 
 
 def _compare_runs(ref, bag, bound_m: float = 0.01) -> float:
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     # the town's scans are taken at one instant; the bag's sweep times are there to test their fields, so the bag's
     # scans are not deskewed either (they would be by default: a bag with per-point times is a raw sweep)

@@ -129,9 +129,9 @@ def line_endpoint_errors(res: DepthResult, seg, edges_cam, gt_depth_map, K) -> n
 @pytest.fixture(scope="module")
 def town(tmp_path_factory):
     try:
-        from plvo.data.synth.generate import generate_sequence
+        from plvo_synth.generate import generate_sequence
     except ImportError:
-        pytest.skip("plvo.data.synth.generate_sequence is not available")
+        pytest.skip("plvo_synth.generate_sequence is not available")
     root = tmp_path_factory.mktemp("town")
     generate_sequence(root, "00", n_frames=3, seed=0, write_depth=True)
     return root

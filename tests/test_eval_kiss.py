@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from plvo.data.registry import open_dataset
-from plvo.eval import tasks
-from plvo.eval.kiss import KissOptions, KissOutput, lidar_to_cam0, run_kiss
-from plvo.eval.kitti_metric import short_relative_error
-from plvo.eval.tasks import (
+from plvo_eval import tasks
+from plvo_eval.kiss import KissOptions, KissOutput, lidar_to_cam0, run_kiss
+from plvo_eval.kitti_metric import short_relative_error
+from plvo_eval.tasks import (
     DESKEWED,
     NOT_DESKEWED,
     RunSpec,

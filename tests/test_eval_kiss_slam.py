@@ -15,14 +15,14 @@ import pytest
 from eval_scene import _cast, _lidar_dirs, _pose, write_box_sequence
 
 from plvo.data.registry import open_dataset, parse_frames
-from plvo.data.synth.sensors import KITTI_CALIB_00_TEXT, T_CAM_VELO
 from plvo.data.trajectory import write_kitti_poses
-from plvo.eval.kiss import KissOptions, lidar_to_cam0, run_kiss
-from plvo.eval.kiss_slam import _quiet, run_kiss_slam
-from plvo.eval.report import build_report, report_json, report_markdown
-from plvo.eval.runner import SequenceSource, build_specs, with_threads
-from plvo.eval.tasks import AS_DELIVERED, CORRECTED, DESKEWED, NOT_DESKEWED, RunSpec, TaskResult, anchor
 from plvo_app.cli import main
+from plvo_eval.kiss import KissOptions, lidar_to_cam0, run_kiss
+from plvo_eval.kiss_slam import _quiet, run_kiss_slam
+from plvo_eval.report import build_report, report_json, report_markdown
+from plvo_eval.runner import SequenceSource, build_specs, with_threads
+from plvo_eval.tasks import AS_DELIVERED, CORRECTED, DESKEWED, NOT_DESKEWED, RunSpec, TaskResult, anchor
+from plvo_synth.sensors import KITTI_CALIB_00_TEXT, T_CAM_VELO
 
 TWIN_SEQUENCE = "07"  # the twin_root fixture's: frames 60:80 of KITTI 07
 
@@ -246,8 +246,8 @@ def test_threads_and_specs():
 
 def test_both_ways_keep_the_reported_runs_closures_on_top(monkeypatch):
     """On raw sweeps KISS-SLAM runs deskewed and not; the report reads the loop closures of the run it reports."""
-    import plvo.eval.tasks as tasks
-    from plvo.eval.kiss_slam import KissSlamOutput, LoopClosure
+    import plvo_eval.tasks as tasks
+    from plvo_eval.kiss_slam import KissSlamOutput, LoopClosure
 
     class Straight:
         sequence, scans_compensated = "straight", False
@@ -303,7 +303,7 @@ def test_report_counts_the_loop_closures(tmp_path):
 
 
 def test_plot_legends_name_kiss_slam(tmp_path, monkeypatch):
-    from plvo.eval import plots
+    from plvo_eval import plots
 
     legends = {}
 
@@ -321,7 +321,7 @@ def test_plot_legends_name_kiss_slam(tmp_path, monkeypatch):
 
 def test_quiet_keeps_its_chatter_out_and_lets_errors_through(capfd, caplog):
     capfd.readouterr()
-    with caplog.at_level(logging.DEBUG, logger="plvo.eval.kiss_slam"), pytest.raises(ValueError, match="boom"), \
+    with caplog.at_level(logging.DEBUG, logger="plvo_eval.kiss_slam"), pytest.raises(ValueError, match="boom"), \
             _quiet():
         print("KissSLAM| Closure Detected")
         os.write(2, b"iteration= 0\t chi2= 0.0\n")  # as g2o writes, beneath Python

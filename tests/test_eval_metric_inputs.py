@@ -14,11 +14,11 @@ from faults_table import fault
 
 from plvo.data.trajectory import write_poses
 from plvo.errors import TrajectoryError
-from plvo.eval.associate import associate, pose_format, times_beside
-from plvo.eval.kitti_metric import SHORT_LENGTHS, evaluate_sequence
 from plvo.geometry import se3
 from plvo_app.cli import main
 from plvo_app.eval_metric import SHORT_DEFAULT, parse_lengths
+from plvo_eval.associate import associate, pose_format, times_beside
+from plvo_eval.kitti_metric import SHORT_LENGTHS, evaluate_sequence
 
 N = 150
 TIMES = 1000.0 + 0.1037 * np.arange(N)  # KITTI-like: not exactly 10 Hz, and far from 0
@@ -359,6 +359,6 @@ def test_help_imports_no_numpy_plotting_or_scipy():
     importing the eval command."""
     code = ("import sys, argparse; from plvo_app import cmd_eval, eval_metric; "
             "eval_metric.add_metric_arguments(argparse.ArgumentParser()); "
-            "print(sorted(m for m in ('numpy', 'matplotlib', 'scipy', 'plvo.eval.associate') if m in sys.modules))")
+            "print(sorted(m for m in ('numpy', 'matplotlib', 'scipy', 'plvo_eval.associate') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"

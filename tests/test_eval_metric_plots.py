@@ -10,12 +10,12 @@ import pytest
 from test_eval_metric_inputs import EST, GT, TIMES, _estimate, _results
 
 from plvo.data.trajectory import write_poses
-from plvo.eval.kitti_metric import absolute_trajectory_error
-from plvo.eval.metric_plots import FIGSIZE, PLOTS, PlottedRun, roll_pitch_yaw, up_axis
 from plvo.geometry import se3
 from plvo_app.cli import main
+from plvo_eval.kitti_metric import absolute_trajectory_error
+from plvo_eval.metric_plots import FIGSIZE, PLOTS, PlottedRun, roll_pitch_yaw, up_axis
 
-DPI = 110  # plvo.eval.plots.save_figure's
+DPI = 110  # plvo_eval.plots.save_figure's
 
 
 def _image(path):
@@ -104,8 +104,8 @@ def test_up_axis_and_yaw_unwrapped():
 def test_orientations_are_drawn_from_the_origin_not_the_position_fit():
     """Along a straight drive the ATE's position fit leaves the roll about the road free (real 04 came out rolled
     39 deg): the orientation plot starts each estimate at the truth's first pose instead."""
-    from plvo.eval.kitti_metric import absolute_trajectory_error
-    from plvo.eval.metric_plots import PlottedRun
+    from plvo_eval.kitti_metric import absolute_trajectory_error
+    from plvo_eval.metric_plots import PlottedRun
 
     n = 30
     gt = np.tile(np.eye(4), (n, 1, 1))

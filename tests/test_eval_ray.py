@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 from eval_scene import write_box_sequence
 
-from plvo.eval.report import build_report, report_json
-from plvo.eval.runner import SequenceSource, build_specs, execute, kiss_threads, with_threads
+from plvo_eval.report import build_report, report_json
+from plvo_eval.runner import SequenceSource, build_specs, execute, kiss_threads, with_threads
 
 ray = pytest.importorskip("ray", reason="ray is not installed")
 

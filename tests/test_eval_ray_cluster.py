@@ -25,8 +25,8 @@ import pytest
 import ray_trace
 from faults_table import fault, one_error_line
 
-from plvo.eval import runner
 from plvo_app.cli import main
+from plvo_eval import runner
 
 ray = pytest.importorskip("ray", reason="ray is not installed")
 from ray.cluster_utils import Cluster  # noqa: E402
@@ -166,7 +166,7 @@ def test_resume_after_a_killed_driver_runs_only_the_missing_tasks(cluster, town,
 
     trace.write_text("")
     monkeypatch.setattr(runner, "execute_task", ray_trace.traced_task)
-    caplog.set_level(logging.INFO, logger="plvo.eval.runner")
+    caplog.set_level(logging.INFO, logger="plvo_eval.runner")
     assert main(eval_args(town, out, "--ray", c.address, "--resume")) == 0
     assert f"--resume: {len(kept)} of {N_TASKS} {row.message} {N_TASKS - len(kept)}" in caplog.text
     ran = [task for task, _ in ray_trace.starts(trace)]

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from plvo.data.trajectory import write_kitti_poses
-from plvo.eval.kitti_metric import evaluate
-from plvo.eval.report import build_report, report_json, report_markdown
-from plvo.eval.report_files import write_report
-from plvo.eval.tasks import RunSpec, SequenceSource, TaskResult
 from plvo.geometry import se3
+from plvo_eval.kitti_metric import evaluate
+from plvo_eval.report import build_report, report_json, report_markdown
+from plvo_eval.report_files import write_report
+from plvo_eval.tasks import RunSpec, SequenceSource, TaskResult
 
 
 def _line(n: int, spacing: float) -> np.ndarray:
@@ -77,7 +77,7 @@ def test_a_complete_report_has_no_marker(tmp_path):
 
 
 def test_report_json_carries_its_provenance(report, tmp_path):
-    from plvo import provenance
+    from plvo_eval import provenance
 
     started = provenance.start(["plvo", "eval", "run", "--out", "x"])
     paths = write_report(report, tmp_path / "out", plots=False, started=started)

@@ -15,10 +15,10 @@ from eval_scene import write_box_sequence
 
 from plvo.data.dataset import Dataset
 from plvo.errors import PlvoError
-from plvo.eval import tasks
-from plvo.eval.report import build_report, report_json
-from plvo.eval.runner import RunSpec, SequenceSource, build_specs, execute
 from plvo_app.cli import main
+from plvo_eval import tasks
+from plvo_eval.report import build_report, report_json
+from plvo_eval.runner import RunSpec, SequenceSource, build_specs, execute
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,7 @@ def test_cli_errors(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def town_root(tmp_path_factory):
-    from plvo.data.synth import generate_sequence
+    from plvo_synth import generate_sequence
 
     root = tmp_path_factory.mktemp("town")
     generate_sequence(root, "01", n_frames=24, seed=3, speed_mps=10.0)
@@ -160,7 +160,7 @@ def test_eval_run_plvo_on_two_synthetic_town_sequences_matches_metric(town_root,
 
 _POOL_SCRIPT = """
 import os, sys, time
-from plvo.eval.runner import worker_pool
+from plvo_eval.runner import worker_pool
 if __name__ == "__main__":
     pool = worker_pool(1)
     print(pool.submit(os.getpid).result(), flush=True)

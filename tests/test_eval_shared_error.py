@@ -1,11 +1,11 @@
-"""What two systems' errors share on one sequence (plvo.eval.shared_error): a common error recovered, none invented."""
+"""What two systems' errors share on one sequence (plvo_eval.shared_error): a common error recovered, none invented."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from plvo.eval.shared_error import segment_translation_errors, shared_error
+from plvo_eval.shared_error import segment_translation_errors, shared_error
 
 
 def _path(heights: np.ndarray, steps: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """What the evaluation says about where the drift comes from: the per-stage heading and scale error of keyframe steps
-(plvo.eval.stage_drift), each accepted loop judged by its edge (plvo.eval.revisits.loop_edge_errors), and Table I
-with its development and held-out rows pooled apart (plvo.eval.splits)."""
+(plvo_eval.stage_drift), each accepted loop judged by its edge (plvo_eval.revisits.loop_edge_errors), and Table I
+with its development and held-out rows pooled apart (plvo_eval.splits)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from plvo.data.trajectory import write_kitti_poses
-from plvo.eval.kitti_metric import evaluate
-from plvo.eval.report import build_report, report_json, report_markdown
-from plvo.eval.revisits import loop_edge_errors
-from plvo.eval.splits import DEVELOPMENT, HELD_OUT, twin_split
-from plvo.eval.stage_drift import stage_drift
-from plvo.eval.tasks import RunSpec, SequenceSource, TaskResult
 from plvo.geometry import se3
+from plvo_eval.kitti_metric import evaluate
+from plvo_eval.report import build_report, report_json, report_markdown
+from plvo_eval.revisits import loop_edge_errors
+from plvo_eval.splits import DEVELOPMENT, HELD_OUT, twin_split
+from plvo_eval.stage_drift import stage_drift
+from plvo_eval.tasks import RunSpec, SequenceSource, TaskResult
 
 UP_CAM = np.array([0.0, -1.0, 0.0])  # KITTI's cam0: y down
 

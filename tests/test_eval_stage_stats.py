@@ -1,4 +1,4 @@
-"""Per-stage statistics (plvo.eval.stage_stats, kiss_stats, stage_report) and `plvo eval stages`: each statistic
+"""Per-stage statistics (plvo_eval.stage_stats, kiss_stats, stage_report) and `plvo eval stages`: each statistic
 against the values it is made of or a known setting, and the report of a sequence set beside itself."""
 
 from __future__ import annotations
@@ -13,11 +13,16 @@ from eval_scene import write_box_sequence
 
 from plvo.config import SystemConfig, merge
 from plvo.data.kitti import KittiOdometry
-from plvo.eval.kiss import KissOptions, run_kiss
-from plvo.eval.kiss_stats import kiss_summary, registration_fit, run_kiss_stats
-from plvo.eval.stage_report import BAND, compare
-from plvo.eval.stage_runs import run_kiss_side
-from plvo.eval.stage_stats import (
+from plvo.geometry import se3
+from plvo.recording import FanOut
+from plvo.results import MetricsResult, TrackingResult
+from plvo.types import DepthPriors, FeatureSet
+from plvo_app.cli import main
+from plvo_eval.kiss import KissOptions, run_kiss
+from plvo_eval.kiss_stats import kiss_summary, registration_fit, run_kiss_stats
+from plvo_eval.stage_report import BAND, compare
+from plvo_eval.stage_runs import run_kiss_side
+from plvo_eval.stage_stats import (
     DISTRIBUTION,
     SHARE,
     SIGNED,
@@ -25,11 +30,6 @@ from plvo.eval.stage_stats import (
     backend_moves,
     describe,
 )
-from plvo.geometry import se3
-from plvo.recording import FanOut
-from plvo.results import MetricsResult, TrackingResult
-from plvo.types import DepthPriors, FeatureSet
-from plvo_app.cli import main
 
 TOWN_FRAMES = 12
 
@@ -65,7 +65,7 @@ def town(synth_seq) -> Path:
 @pytest.fixture(scope="module")
 def town_run(town):
     """plvo inline on the town, with the statistics recorder and a spy beside it -> (summary, spy, config)."""
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     config = merge(SystemConfig(), {"backend": {"concurrent": False}, "loop": {"enabled": False}})
     stats, spy = StageStatsRecorder(), _Spy()

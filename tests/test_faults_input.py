@@ -230,7 +230,7 @@ def test_stale_synth_stage_removed_by_next_run(tmp_path):
     assert p.wait(timeout=30) == row.exit
     stale = list(tmp_path.glob(".synth-00-*"))
     assert len(stale) == 1 and str(p.pid) in stale[0].name
-    from plvo.data.synth.generate import remove_stale_stages
+    from plvo_synth.generate import remove_stale_stages
 
     assert remove_stale_stages(tmp_path, ".synth-00-") == stale and not stale[0].exists()
 
@@ -306,8 +306,8 @@ def test_no_command_replaces_an_output_that_exists(synth_seq, tmp_path, capsys):
 
 def test_unexpected_error_in_any_command_is_one_line(tmp_path, capsys, monkeypatch):
     row = fault("unexpected-other")
-    from plvo.eval import kitti_metric
     from plvo_app.cli import main
+    from plvo_eval import kitti_metric
 
     def bug(*args, **kwargs):
         raise ZeroDivisionError("injected eval bug")

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from faults_table import break_tracker_at, fault, one_error_line, viz_env
 
-from plvo.eval.kitti_variants import variant
 from plvo_app.rrd_reader import read_rrd
+from plvo_eval.kitti_variants import variant
 
 _env = viz_env
 
@@ -149,7 +149,7 @@ def test_disk_full_during_the_run(synth_seq, tmpfs, tmp_path):
            str(tmpfs / "run.rrd"), "--out", "out"]  # full: every frame's image, so the file fills the disk early
     # Each frame made to take 0.25 s: the recorder hands chunks over every 2 s, and a quick machine would finish
     # these frames before the first of them reached the disk.
-    slow = ("import sys, time; from plvo.system import System; step = System.step; "
+    slow = ("import sys, time; from plvo.runtime.system import System; step = System.step; "
             "System.step = lambda self, f: (time.sleep(0.25), step(self, f))[1]; "
             "from plvo_app.cli import main_viz; sys.exit(main_viz())")
     p = subprocess.Popen([sys.executable, "-c", slow] + cmd, cwd=tmp_path, env=_env(), stderr=subprocess.PIPE,
@@ -189,7 +189,7 @@ def test_failed_recording_write_stops_the_run(town, tmp_path, capsys, monkeypatc
     # The recorder hands chunks over every 2 s: a run shorter than that writes once, at the close. Each frame is
     # made to take 0.25 s, so that the file is written during the run and the failing write comes after one that
     # succeeded, whatever the machine's speed.
-    from plvo.system import System
+    from plvo.runtime.system import System
 
     step = System.step
 
@@ -334,7 +334,7 @@ def test_a_file_that_blocks_is_named_within_a_bound(synth_seq, tmp_path, capsys,
     worker timeout) and then named by the frame before it, without the file. Now a frame's files that take over
     READ_TIMEOUT_S (60 s; 2 s here) to read are one line naming them."""
     row = fault("read-blocks")
-    from plvo.data import prefetch
+    from plvo.runtime import prefetch
 
     monkeypatch.setattr(prefetch, "READ_TIMEOUT_S", 2.0)
     monkeypatch.chdir(tmp_path)

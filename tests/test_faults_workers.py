@@ -3,7 +3,7 @@ features each in a process of its own): the run ends within seconds with one lin
 what ended it, exit 1, timings.json `failed` with that reason, no poses.txt, the recording readable and stamped
 `failed`, and no zombie left. Each run has a hard time limit, so a hang fails the test instead of the suite.
 
-The kills are real signals sent to the real worker processes, told apart by their process names (plvo.workers
+The kills are real signals sent to the real worker processes, told apart by their process names (plvo.runtime.workers
 names each after its core)."""
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _worker(name: str, timeout_s: float = 60.0) -> psutil.Process:
 
 def _at_frame(monkeypatch, frame: int, act) -> None:
     """Call act() when the tracker starts frame `frame` (before its step)."""
-    from plvo.system import System
+    from plvo.runtime.system import System
 
     step = System.step
 

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from plvo.data.prefetch import prefetched
+from plvo.runtime.prefetch import prefetched
 from plvo.types import Frame
 
 
@@ -72,8 +72,8 @@ def test_features_ahead_give_the_same_trajectory(synth_sequence_factory, monkeyp
     not extract any feature itself once the stages are built."""
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.run import run_system
-    from plvo.system import System
+    from plvo.runtime.run import run_system
+    from plvo.runtime.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     cfg = merge(SystemConfig(), {"backend": {"concurrent": False}})
@@ -128,15 +128,15 @@ def test_the_features_process_gives_the_trajectory_of_features_in_a_thread(synth
     """The deployed mode extracts features in a process of its own (plvo.features.worker): the tracker's process
     extracts none, and the poses equal those of the same workers run as threads (features extracted in the reading
     thread), to the last bit. The tracker's process, sharing the cores with its worker processes, runs open3d and
-    OpenCV single-threaded while the System runs (plvo.workers.libraries_single_threaded), and gets their threads
-    back at its close."""
+    OpenCV single-threaded while the System runs (plvo.runtime.workers.libraries_single_threaded), and gets their
+    threads back at its close."""
     import cv2
     import open3d
 
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.run import run_system
-    from plvo.system import System
+    from plvo.runtime.run import run_system
+    from plvo.runtime.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     calls = _extraction_threads(monkeypatch)
@@ -172,7 +172,7 @@ def test_the_look_ahead_runs_at_a_lower_priority(synth_sequence_factory):
     from plvo.data.kitti import KittiOdometry
     from plvo.features import extract
     from plvo.priority import LOOKAHEAD_NICENESS
-    from plvo.system import System
+    from plvo.runtime.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
     system = System(merge(SystemConfig(), {"loop": {"enabled": True}}), calib=ds.calib)
@@ -223,7 +223,7 @@ def test_a_failure_in_the_features_process_names_its_frame(synth_sequence_factor
     from plvo.config import SystemConfig
     from plvo.data.kitti import KittiOdometry
     from plvo.errors import WorkerError
-    from plvo.system import System
+    from plvo.runtime.system import System
 
     ds = KittiOdometry(synth_sequence_factory(16, seed=0), "00")
 

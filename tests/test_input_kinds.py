@@ -13,7 +13,7 @@ from faults_table import fault, one_error_line
 from plvo.data.pointcloud import read_scan_file
 from plvo.data.registry import open_dataset
 from plvo.errors import DatasetError
-from plvo.eval.kitti_variants import variant
+from plvo_eval.kitti_variants import variant
 
 SEQ = "04"
 

@@ -11,7 +11,8 @@ import pytest
 
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import TrajectoryError
-from plvo.eval.kitti_metric import (
+from plvo.geometry import se3
+from plvo_eval.kitti_metric import (
     DEVKIT_LENGTHS,
     SHORT_LENGTHS,
     absolute_trajectory_error,
@@ -27,7 +28,6 @@ from plvo.eval.kitti_metric import (
     trajectory_distances,
     umeyama,
 )
-from plvo.geometry import se3
 
 
 def straight_line(n: int, spacing: float, wobble: float = 0.1) -> np.ndarray:

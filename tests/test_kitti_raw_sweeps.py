@@ -11,8 +11,8 @@ import pytest
 
 from plvo.config import SystemConfig, merge
 from plvo.data.kitti import KittiRaw
-from plvo.eval.kiss import raw_sweeps, timed_scan_reader
 from plvo.lidar.deskew import Sweep, needs_deskew
+from plvo_eval.kiss import raw_sweeps, timed_scan_reader
 
 RAW_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_raw"
 DRIVE = "2011_09_26_drive_0009"
@@ -66,7 +66,7 @@ def test_peers_read_the_raw_drive_with_the_same_times(raw_root):
 def test_plvo_deskews_a_raw_drive_with_its_times_and_the_tracked_motion(raw_root, monkeypatch):
     """registration.deskew = "auto" (the default) deskews every keyframe's scan of a raw drive before registration:
     with the loader's return times and the tracker's motion either side of the frame, at the truth's speed."""
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     ds = KittiRaw(raw_root, DRIVE, frames=slice(0, 5))
     assert SystemConfig().registration.deskew == "auto" and needs_deskew(ds[0], "auto")

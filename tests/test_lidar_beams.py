@@ -17,9 +17,9 @@ from plvo.depth.density import ring_spacing_px
 from plvo.depth.extract import extract_depth
 from plvo.depth.projection import project_scan
 from plvo.errors import PlvoError
-from plvo.eval.kiss import timed_scan_reader
 from plvo.features.extract import extract_features
 from plvo.lidar.beams import HDL64E_ELEVATIONS_DEG, beam_rings, elevation_deg, resample_beams
+from plvo_eval.kiss import timed_scan_reader
 
 
 @pytest.fixture(scope="module")

@@ -8,11 +8,11 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from plvo.data.kitti import KittiOdometry
-from plvo.data.synth import sensors
-from plvo.data.synth.twin.lidars import point_times
 from plvo.errors import ConfigError, PlvoError
 from plvo.geometry import se3
 from plvo.lidar.deskew import Sweep, azimuth_times, deskew, needs_deskew, twist_from_motion
+from plvo_synth import sensors
+from plvo_synth.twin.lidars import point_times
 
 TWIN_SEQ = "07"  # conftest.TWIN_SEQUENCE
 

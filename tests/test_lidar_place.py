@@ -52,7 +52,7 @@ class Drive:
         pts = np.fromfile(self.dir / "velodyne" / f"{f:06d}.bin", np.float32).reshape(-1, 4)[:, :3]
         if not self.swept:
             return pts
-        from plvo.data.synth.twin.lidars import point_times
+        from plvo_synth.twin.lidars import point_times
 
         t = point_times(pts)[:, None]
         T_wl = self.gt @ self.T_cam_velo

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def run(outback_twin):
     from plvo.data.kitti import KittiOdometry
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     ds = KittiOdometry(outback_twin, "00")
     rec = _Collect()

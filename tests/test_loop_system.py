@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from plvo.config import BackendConfig, LoopConfig, SystemConfig
-from plvo.eval.revisits import loop_edge_errors, revisits
 from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, TrackingResult
+from plvo_eval.revisits import loop_edge_errors, revisits
 
 pytestmark = pytest.mark.slow
 
@@ -63,7 +63,7 @@ class _Collect:
 @pytest.fixture(scope="module")
 def run(synth_sequence_factory):
     from plvo.data.kitti import KittiOdometry
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     root = synth_sequence_factory(FRAMES, seed=SEED, speed_mps=SPEED, loop=True)
     ds = KittiOdometry(root, "00", frames=slice(0, RUN_FRAMES))

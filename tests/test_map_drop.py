@@ -6,7 +6,7 @@ import numpy as np
 
 from plvo.config import SystemConfig, merge
 from plvo.data.kitti import KittiOdometry
-from plvo.system import System
+from plvo.runtime.system import System
 
 
 def _run(ds, cfg):

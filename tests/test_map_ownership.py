@@ -109,7 +109,7 @@ def test_workers_hold_no_map_and_every_write_goes_through_apply(synth_sequence_f
 
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.system import System
+    from plvo.runtime.system import System
 
     writers: list[str] = []
     original = LandmarkMap.apply_update
@@ -135,7 +135,7 @@ def test_workers_hold_no_map_and_every_write_goes_through_apply(synth_sequence_f
 
 
 def _run_poses(ds, cfg) -> np.ndarray:
-    from plvo.run import run_dataset
+    from plvo.runtime.run import run_dataset
 
     return run_dataset(ds, cfg).poses
 
@@ -194,9 +194,9 @@ def test_the_back_end_lag_decides_where_the_tracker_waits(synth_sequence_factory
     keyframe tracked before its predecessor's result is solved again on the refined map (BackendStage.catch_up)."""
     from plvo.config import SystemConfig, merge
     from plvo.data.kitti import KittiOdometry
-    from plvo.system import System
+    from plvo.runtime.system import System
+    from plvo.runtime.worker_stages import BackendStage
     from plvo.tracking.frontend import Frontend
-    from plvo.worker_stages import BackendStage
 
     events: list[tuple[str, int]] = []
     track, apply_backend = Frontend.track, BackendStage.apply

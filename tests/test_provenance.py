@@ -1,4 +1,4 @@
-"""plvo.provenance: the block every result file carries (revision, date, machine, load, command, version)."""
+"""plvo_eval.provenance: the block every result file carries (revision, date, machine, load, command, version)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import os
 import re
 import subprocess
 
-from plvo import provenance
+from plvo_eval import provenance
 
 
 def test_block_names_revision_machine_load_and_command():

@@ -38,6 +38,6 @@ def test_every_public_name_is_its_module_own():
 def test_import_plvo_loads_no_pipeline_library():
     loaded = subprocess.run(
         [sys.executable, "-c", "import sys, plvo; print(sorted(m for m in ('numpy', 'cv2', 'open3d', 'gtsam', "
-                               "'plvo.system') if m in sys.modules))"],
+                               "'plvo.runtime.system') if m in sys.modules))"],
         capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "[]", loaded

@@ -1,4 +1,4 @@
-"""The twin of a KITTI raw drive (plvo.data.synth.twin.raw_drive): written in KITTI's raw layout and read as the real
+"""The twin of a KITTI raw drive (plvo_synth.twin.raw_drive): written in KITTI's raw layout and read as the real
 drive is, its oxts giving back the poses it was rendered at, its path the drive's oxts without their timing jitter,
 its scans raw sweeps timed as the drive's."""
 
@@ -13,11 +13,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from plvo.data.kitti import KittiRaw
-from plvo.data.synth import sensors
-from plvo.data.synth.twin.follow import PoseInterpolator
-from plvo.data.synth.twin.generate import TwinSettings
-from plvo.data.synth.twin.lidars import point_times
-from plvo.data.synth.twin.raw_drive import (
+from plvo.data.trajectory import read_kitti_poses
+from plvo.errors import SynthError
+from plvo_app.cli import main
+from plvo_synth import sensors
+from plvo_synth.twin.follow import PoseInterpolator
+from plvo_synth.twin.generate import TwinSettings
+from plvo_synth.twin.lidars import point_times
+from plvo_synth.twin.raw_drive import (
     T_velo_imu,
     generate_raw_twin,
     mercator,
@@ -25,9 +28,6 @@ from plvo.data.synth.twin.raw_drive import (
     read_drive,
     smooth_path,
 )
-from plvo.data.trajectory import read_kitti_poses
-from plvo.errors import SynthError
-from plvo_app.cli import main
 
 DRIVE = "2011_09_26_drive_0009"
 

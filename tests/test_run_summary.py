@@ -4,8 +4,8 @@ The whole path through plvo-viz is tested in tests/test_app_viz.py (summary.json
 import numpy as np
 import pytest
 
-from plvo.eval.kitti_metric import evaluate_sequence
 from plvo_app.run_summary import accuracy, build_summary, point_latest, summary_lines
+from plvo_eval.kitti_metric import evaluate_sequence
 
 
 def _drive(n: int, step_m: float, yaw_per_frame: float = 0.0) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""plvo.scheduler: each result applied exactly at the frame its lag sets, in submission order, back end before loop
-at a frame; inline (lag 0) at once; the count of applied loop corrections a global BA job carries, by which the
+"""plvo.runtime.scheduler: each result applied exactly at the frame its lag sets, in submission order, back end before
+loop at a frame; inline (lag 0) at once; the count of applied loop corrections a global BA job carries, by which the
 loop closer judges it stale; what the map may drop."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import pytest
 
 from plvo.config import SystemConfig, merge
-from plvo.scheduler import Lags, Scheduler, oldest_reachable_keyframe
+from plvo.runtime.scheduler import Lags, Scheduler, oldest_reachable_keyframe
 
 
 @dataclass(frozen=True)

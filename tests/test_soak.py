@@ -1,4 +1,4 @@
-"""plvo bench --soak's report (plvo.eval.soak) on a short synthetic run: windows, memory, errors, loops."""
+"""plvo bench --soak's report (plvo_eval.soak) on a short synthetic run: windows, memory, errors, loops."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from plvo.recording import NullRecorder, RunInfo
 
 def test_soak_report_describes_the_run(synth_sequence_factory, tmp_path):
     from plvo.data.kitti import KittiOdometry
-    from plvo.eval.soak import run_soak
+    from plvo_eval.soak import run_soak
 
     ds = KittiOdometry(synth_sequence_factory(40, seed=3), "00")
     cfg = merge(SystemConfig(), {"loop": {"enabled": True}})

@@ -10,8 +10,8 @@ import pykitti
 import pytest
 
 from plvo.data.kitti import KittiOdometry
-from plvo.data.synth import SynthSettings, plan_trajectory, sensors
-from plvo.data.synth.mesh import EDGE_TEXTURE
+from plvo_synth import SynthSettings, plan_trajectory, sensors
+from plvo_synth.mesh import EDGE_TEXTURE
 
 N = 20  # conftest.SYNTH_SEQ_FRAMES
 SPEED = 10.0
@@ -136,10 +136,10 @@ def test_frames_give_kitti_like_features(synth_seq):
 
 
 def test_exposure_gain_scales_the_image():
-    from plvo.data.synth import path as paths
-    from plvo.data.synth.render import Renderer
-    from plvo.data.synth.textures import build_atlas
-    from plvo.data.synth.town import build_town
+    from plvo_synth import path as paths
+    from plvo_synth.render import Renderer
+    from plvo_synth.textures import build_atlas
+    from plvo_synth.town import build_town
 
     traj = plan_trajectory(SynthSettings(n_frames=2, seed=9))
     T_town_cam = traj.T_town_world

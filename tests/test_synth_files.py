@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from plvo.data.synth import SynthSettings, cached_sequence_root, generate_sequence
 from plvo.errors import SynthError
 from plvo_app.cli import main
+from plvo_synth import SynthSettings, cached_sequence_root, generate_sequence
 
 TINY = {"n_frames": 3, "seed": 3, "speed_mps": 12.0, "exposure_change": 0.1}
 
@@ -78,7 +78,7 @@ def test_cache_is_complete_or_absent(tmp_path, monkeypatch):
 def test_cache_holds_the_frames_asked_for_and_grows_to_the_same_bits(tmp_path, monkeypatch):
     """A run of the first frames waits for those only; a later run wanting more extends the cache in place, to the
     files one whole generation writes; what an interrupted extension left is tidied away before the next."""
-    from plvo.data.synth.cache import cached_frames
+    from plvo_synth.cache import cached_frames
 
     monkeypatch.setenv("PLVO_CACHE", str(tmp_path / "cache"))
     settings = SynthSettings(n_frames=4, seed=7)

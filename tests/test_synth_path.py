@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plvo.data.synth import SynthSettings, exposure_gains, generate_sequence, plan_trajectory
-from plvo.data.synth import path as paths
-from plvo.data.synth.sensors import CAMERA_HEIGHT_M
 from plvo.errors import SynthError
+from plvo_synth import SynthSettings, exposure_gains, generate_sequence, plan_trajectory
+from plvo_synth import path as paths
+from plvo_synth.sensors import CAMERA_HEIGHT_M
 
 
 def _yaw(T_world_cam: np.ndarray) -> np.ndarray:

@@ -13,13 +13,13 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from plvo.data.kitti import KittiOdometry
-from plvo.data.synth import sensors
-from plvo.data.synth.twin.follow import load_followed
-from plvo.data.synth.twin.layout import Layout
-from plvo.data.synth.twin.lidars import LIDAR_MODELS, point_times, sweep_time
-from plvo.data.synth.twin.scenery import build_world
 from plvo.data.trajectory import read_kitti_poses
 from plvo.errors import SynthError
+from plvo_synth import sensors
+from plvo_synth.twin.follow import load_followed
+from plvo_synth.twin.layout import Layout
+from plvo_synth.twin.lidars import LIDAR_MODELS, point_times, sweep_time
+from plvo_synth.twin.scenery import build_world
 
 SEQ = "07"
 FIRST, N = 60, 20  # conftest.TWIN_FRAMES
@@ -271,9 +271,9 @@ def test_bad_follow_input_names_file_and_line(tmp_path, kitti_root):
 
 def test_kiss_icp_tracks_a_twin(twin_root):
     from plvo.data.registry import open_dataset
-    from plvo.eval.kiss import KissOptions, run_kiss
-    from plvo.eval.kitti_metric import short_relative_error
-    from plvo.eval.tasks import anchor
+    from plvo_eval.kiss import KissOptions, run_kiss
+    from plvo_eval.kitti_metric import short_relative_error
+    from plvo_eval.tasks import anchor
 
     ds = open_dataset(twin_root, SEQ)
     out = run_kiss(ds, KissOptions())
@@ -331,8 +331,8 @@ def test_mover_casts_keep_every_hit(kitti_root):
     """Traffic.cast tests each mover's bounding sphere before casting into its mesh (one matrix-vector product a
     mover when the rays share an instant); no hit of the camera's rays (one origin), of rays from many origins at
     one instant (shadow rays) or of a rolling sweep (a time a column) may be lost by it."""
-    from plvo.data.synth.twin.follow import PoseInterpolator
-    from plvo.data.synth.twin.generate import TwinSettings, build_twin
+    from plvo_synth.twin.follow import PoseInterpolator
+    from plvo_synth.twin.generate import TwinSettings, build_twin
 
     twin = build_twin(TwinSettings(str(kitti_root / "poses" / f"{SEQ}.txt"), "60:80", traffic=8), SEQ)
     r, traffic = twin.renderer, twin.traffic

@@ -1,4 +1,4 @@
-"""The twins' camera (plvo.data.synth.twin.camera_effects): each imperfection measured back on developed images
+"""The twins' camera (plvo_synth.twin.camera_effects): each imperfection measured back on developed images
 against its setting — noise level, motion blur length at a known speed and depth, vignetting, exposure steps, the
 rectification's residual warp and its resampling — and IDEAL_CAMERA byte for byte the old renderer's camera."""
 
@@ -11,11 +11,11 @@ import cv2
 import numpy as np
 import pytest
 
-from plvo.data.synth import sensors
-from plvo.data.synth.twin import camera_effects as ce
-from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism, Exposure, develop
-from plvo.data.synth.twin.follow import PoseInterpolator
 from plvo.errors import SynthError
+from plvo_synth import sensors
+from plvo_synth.twin import camera_effects as ce
+from plvo_synth.twin.camera_effects import IDEAL_CAMERA, CameraRealism, Exposure, develop
+from plvo_synth.twin.follow import PoseInterpolator
 
 # every effect off, linear response, gain fixed at 1 (radiance 1 -> 255 grey): each test turns on what it measures
 QUIET = dataclasses.replace(IDEAL_CAMERA, response="linear", noise_model="sensor", read_noise_grey=0.0,

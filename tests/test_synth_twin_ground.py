@@ -1,4 +1,4 @@
-"""The realistic twins' ground (plvo.data.synth.twin.ground): dashed lane lines of the set dash and gap, paving
+"""The realistic twins' ground (plvo_synth.twin.ground): dashed lane lines of the set dash and gap, paving
 stones of the set size, asphalt whose texture no longer repeats with the atlas's tile, an uneven shade of the set
 spread, markings the same whichever way the road is driven, and the ideal ground shaded as before. A straight
 160 m road rendered from 25 m straight above (the ground then lies at one depth: metres per pixel are constant);
@@ -11,10 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plvo.data.synth.kitti_calib import CALIB_00_02
-from plvo.data.synth.textures import MATERIAL_ID, build_atlas
-from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA
-from plvo.data.synth.twin.ground import (
+from plvo.errors import SynthError
+from plvo_synth.kitti_calib import CALIB_00_02
+from plvo_synth.textures import MATERIAL_ID, build_atlas
+from plvo_synth.twin.camera_effects import IDEAL_CAMERA
+from plvo_synth.twin.ground import (
     EDGE_LINE,
     IDEAL_GROUND,
     REALISTIC_GROUND,
@@ -22,13 +23,12 @@ from plvo.data.synth.twin.ground import (
     GroundShader,
     pulse_train,
 )
-from plvo.data.synth.twin.layout import ZONES, Layout
-from plvo.data.synth.twin.lidars import lidar_model
-from plvo.data.synth.twin.render import TwinRenderer
-from plvo.data.synth.twin.scenery import build_world
-from plvo.data.synth.twin.scenery_realism import IDEAL_SCENERY, REALISTIC_SCENERY
-from plvo.data.synth.twin.traffic import Traffic
-from plvo.errors import SynthError
+from plvo_synth.twin.layout import ZONES, Layout
+from plvo_synth.twin.lidars import lidar_model
+from plvo_synth.twin.render import TwinRenderer
+from plvo_synth.twin.scenery import build_world
+from plvo_synth.twin.scenery_realism import IDEAL_SCENERY, REALISTIC_SCENERY
+from plvo_synth.twin.traffic import Traffic
 
 M = MATERIAL_ID
 SEED = 2

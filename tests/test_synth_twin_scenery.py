@@ -1,4 +1,4 @@
-"""The twins' realistic scenery (plvo.data.synth.twin.scenery_realism): leafy crowns that scatter and pass lidar
+"""The twins' realistic scenery (plvo_synth.twin.scenery_realism): leafy crowns that scatter and pass lidar
 rays, rows of houses of one design, railings, plain walls; the ideal world as it was; the realistic world the
 same whichever way the road is driven. Small worlds built on the fly (a 160 m road), no twin is written."""
 
@@ -8,14 +8,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from plvo.data.synth.facade import facade_rectangles
-from plvo.data.synth.mesh import MeshBuilder, Town
-from plvo.data.synth.textures import MATERIAL_ID, MATERIALS, build_atlas
-from plvo.data.synth.twin import shapes
-from plvo.data.synth.twin.layout import ZONES, Layout
-from plvo.data.synth.twin.scenery import build_world
-from plvo.data.synth.twin.scenery_realism import IDEAL_SCENERY, REALISTIC_SCENERY, SceneryRealism
 from plvo.errors import SynthError
+from plvo_synth.facade import facade_rectangles
+from plvo_synth.mesh import MeshBuilder, Town
+from plvo_synth.textures import MATERIAL_ID, MATERIALS, build_atlas
+from plvo_synth.twin import shapes
+from plvo_synth.twin.layout import ZONES, Layout
+from plvo_synth.twin.scenery import build_world
+from plvo_synth.twin.scenery_realism import IDEAL_SCENERY, REALISTIC_SCENERY, SceneryRealism
 
 M = MATERIAL_ID
 SEED = 2

@@ -1,4 +1,4 @@
-"""The run's own threads cannot hang it: the frame-reading thread (plvo.data.prefetch) and the recording's writer
+"""The run's own threads cannot hang it: the frame-reading thread (plvo.runtime.prefetch) and the recording's writer
 thread (plvo_app.rrd_sink) each end in one error within their bound when what they wait on never returns."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from plvo.data.prefetch import prefetched
 from plvo.errors import RecordingError, RunFailed
+from plvo.runtime.prefetch import prefetched
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -15,10 +15,10 @@ from scipy.spatial.transform import Rotation
 
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset
-from plvo.eval.kitti_metric import absolute_trajectory_error
-from plvo.eval.kitti_variants import variant
-from plvo.run import run_dataset
+from plvo.runtime.run import run_dataset
 from plvo.tracking.time_offset import TimeOffsetEstimator
+from plvo_eval.kitti_metric import absolute_trajectory_error
+from plvo_eval.kitti_variants import variant
 
 DT = 0.1
 

@@ -8,9 +8,9 @@ import pytest
 
 from plvo.config import SystemConfig
 from plvo.data.kitti import KittiOdometry
-from plvo.eval.kitti_metric import short_relative_error
 from plvo.geometry import se3
 from plvo.tracking.frontend import Frontend
+from plvo_eval.kitti_metric import short_relative_error
 
 
 def _run(ds, cfg=SystemConfig()):

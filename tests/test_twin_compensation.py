@@ -9,14 +9,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plvo.data.synth import sensors
-from plvo.data.synth.twin.follow import PoseInterpolator
-from plvo.data.synth.twin.generate import TwinSettings, build_twin
-from plvo.data.synth.twin.lidars import SWEEP_S, LidarEffects, lidar_model
-from plvo.data.synth.twin.realism import IDEAL, IDEAL_LIDAR, LidarRealism, Realism
-from plvo.data.synth.twin.scenery_realism import IDEAL_SCENERY
 from plvo.errors import SynthError
 from plvo.lidar.seam import ring_turns, seam_ground_split, storage_rings
+from plvo_synth import sensors
+from plvo_synth.twin.follow import PoseInterpolator
+from plvo_synth.twin.generate import TwinSettings, build_twin
+from plvo_synth.twin.lidars import SWEEP_S, LidarEffects, lidar_model
+from plvo_synth.twin.realism import IDEAL, IDEAL_LIDAR, LidarRealism, Realism
+from plvo_synth.twin.scenery_realism import IDEAL_SCENERY
 
 SEQ = "04"
 KITTI_RECORDS = LidarRealism().compensation_records_a_sweep

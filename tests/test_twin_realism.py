@@ -1,4 +1,4 @@
-"""The twins' sensor imperfections (plvo.data.synth.twin.realism), each measured on a twin against its setting.
+"""The twins' sensor imperfections (plvo_synth.twin.realism), each measured on a twin against its setting.
 
 In-process on one twin world (07, frames 60:64): range noise against the surfaces (the same rays without noise), a
 biased beam's elevation measured back by casting candidate elevations into the world, dropouts, returns from
@@ -16,15 +16,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from plvo.data.kitti import KittiOdometry
-from plvo.data.synth import sensors
-from plvo.data.synth.kitti_calib import CALIB_00_02, CALIB_04_10, CALIB_2011_09_26, odometry_calibration
-from plvo.data.synth.twin.camera_effects import IDEAL_CAMERA
-from plvo.data.synth.twin.follow import PoseInterpolator
-from plvo.data.synth.twin.generate import TwinSettings, build_twin, generate_twin
-from plvo.data.synth.twin.lidars import EGO_FIRST_RING, LidarEffects, ego_return_share, sweep_time
-from plvo.data.synth.twin.realism import IDEAL, IDEAL_LIDAR, LidarRealism, Realism, RigRealism
-from plvo.data.synth.twin.scenery_realism import IDEAL_SCENERY
 from plvo.errors import SynthError
+from plvo_synth import sensors
+from plvo_synth.kitti_calib import CALIB_00_02, CALIB_04_10, CALIB_2011_09_26, odometry_calibration
+from plvo_synth.twin.camera_effects import IDEAL_CAMERA
+from plvo_synth.twin.follow import PoseInterpolator
+from plvo_synth.twin.generate import TwinSettings, build_twin, generate_twin
+from plvo_synth.twin.lidars import EGO_FIRST_RING, LidarEffects, ego_return_share, sweep_time
+from plvo_synth.twin.realism import IDEAL, IDEAL_LIDAR, LidarRealism, Realism, RigRealism
+from plvo_synth.twin.scenery_realism import IDEAL_SCENERY
 
 SEQ = "07"
 QUIET = LidarRealism(range_noise_m=0.0, beam_elevation_sigma_deg=0.0, beam_range_sigma_m=0.0,

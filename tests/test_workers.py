@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from plvo.errors import WorkerError
-from plvo.workers import OrderedWorker
+from plvo.runtime.workers import OrderedWorker
 
 
 @dataclass(frozen=True)
@@ -216,10 +216,10 @@ def _faults_of_scan_sized_arrays(n: int = 20) -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc policy (plvo.heap) is Linux-only")
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc policy (plvo.allocator) is Linux-only")
 def test_a_worker_process_reuses_freed_memory_instead_of_faulting_it_in_again():
     """20 rounds of 8.5 MB of arrays made and freed: glibc's default gives much of it back to the OS each round, so
-    it is faulted in again page by page; a worker process keeps the memory (plvo.heap.keep_freed_memory)."""
+    it is faulted in again page by page; a worker process keeps the memory (plvo.allocator.keep_freed_memory)."""
     import subprocess
 
     script = (f"import sys; sys.path[:0] = {sys.path!r}; "
@@ -320,7 +320,7 @@ def test_the_libraries_get_their_threads_back_when_the_last_limit_is_given_back(
     import cv2
     import open3d
 
-    from plvo.workers import libraries_single_threaded
+    from plvo.runtime.workers import libraries_single_threaded
 
     mine = open3d.utility.get_max_threads(), cv2.getNumThreads()
     first = libraries_single_threaded()

@@ -18,7 +18,7 @@ import psutil
 import pytest
 
 from plvo.errors import WorkerError
-from plvo.workers import OrderedWorker
+from plvo.runtime.workers import OrderedWorker
 
 pytestmark = [pytest.mark.timeout(60),
               pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals and prctl: Linux")]

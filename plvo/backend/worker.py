@@ -8,9 +8,9 @@ keyframe further than a registration may jump (RegistrationConfig.max_jump_*) is
 
 The back end never touches the map. The System reads the window at the keyframe (`LandmarkMap.window_data`) into a
 `BackendJob`; `BackendCore.process` returns a `BackendOutput` whose `MapCorrection` (window poses before and after,
-refined landmarks, the new registration edge) the System applies at a fixed frame (plvo.system). The core keeps
+refined landmarks, the new registration edge) the System applies at a fixed frame (plvo.runtime.system). The core keeps
 only the previous keyframe's prepared scan, the next registration's target, so it can run inline, in a thread or in
-a worker process (plvo.workers) and give the same result.
+a worker process (plvo.runtime.workers) and give the same result.
 
 Why the relative-pose factor's base sigma is so small: the tracker's keyframe-to-keyframe translation is ~1 % too
 long (depth-prior scale), NDT's is right to 0.1 %; with a 0.05 m / 0.05 rad base sigma the relative-pose factor
@@ -50,8 +50,8 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class BackendJob:
     """One keyframe for the back end: its id and frame, its registration scan (lidar frame, deskewed where the
-    data needs it (plvo.system), None without registration) and the window of the map ending at it (read when the
-    keyframe was made)."""
+    data needs it (plvo.runtime.system), None without registration) and the window of the map ending at it (read when
+    the keyframe was made)."""
 
     kf_id: int
     frame_index: int
@@ -114,8 +114,8 @@ class BackendCore:
             if b.lidar_target == "local_map" else None
 
     def idle(self) -> None:
-        """Work for the next job done while no job waits (plvo.workers calls it between a worker process's jobs):
-        the newest keyframe's scan downsampled for the local map, which the next registration would do first."""
+        """Work for the next job done while no job waits (plvo.runtime.workers calls it between a worker process's
+        jobs): the newest keyframe's scan downsampled for the local map, which the next registration would do first."""
         if self._local_map is not None:
             self._local_map.prepare()
 

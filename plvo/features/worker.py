@@ -1,9 +1,9 @@
-"""Feature extraction as a worker core (plvo.workers): in the deployed mode it runs in a process of its own.
+"""Feature extraction as a worker core (plvo.runtime.workers): in the deployed mode it runs in a process of its own.
 
 Measured on KITTI 04 (plvo-viz, the defaults): in the tracker's process, ORB (22 ms of CPU a frame) and LSD with
 its repair (25 ms) ran in two threads that got half a core each (51 and 48 ms of wall time), sharing the GIL with
 the tracker and the recorder, and the tracker waited for them; the two cores were ~10 % idle. In a process of
-their own, with the frames read ahead one frame further (plvo.data.prefetch's `finish`): 0.89 -> 0.95 of
+their own, with the frames read ahead one frame further (plvo.runtime.prefetch's `finish`): 0.89 -> 0.95 of
 KISS-ICP's frames a second in `plvo bench` (18 runs each way, alternating). Features are a function of the image
 and the config alone, so the trajectory is the same to the last bit.
 
@@ -26,7 +26,7 @@ from plvo.types import FeatureSet
 
 @dataclass(frozen=True)
 class FeaturesJob:
-    """A frame's image, with its index so that a failure names the frame (plvo.workers)."""
+    """A frame's image, with its index so that a failure names the frame (plvo.runtime.workers)."""
 
     frame_index: int
     image: np.ndarray

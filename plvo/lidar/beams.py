@@ -4,7 +4,7 @@ KITTI's scans have no ring field, so a return's ring is the HDL-64E beam whose n
 return's elevation angle (after the lidar's elevation error is taken out, see plvo.lidar.scan). Keeping every
 2nd ring gives a 32-beam scan with HDL-32E-like spacing in the upper block, every 4th a 16-beam (VLP-16-like,
 about 1.3 to 2 degrees apart). This thins real scans; sequences with VLP-16, HDL-32 or OS-128 geometry of their own
-are generated as twins (`plvo synth --lidar`, plvo/data/synth/twin/lidars.py).
+are generated as twins (`plvo synth --lidar`, plvo_synth/twin/lidars.py).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from plvo.errors import PlvoError
 from plvo.lidar.scan import raise_elevation
 
 # HDL-64E nominal elevations (deg): 32 lasers from +2 to -8.33 (1/3 deg apart) and 32 from -8.83 to -24.8 (about
-# 1/2 deg apart), as the synthetic town's Velodyne model (plvo.data.synth.sensors) has them
+# 1/2 deg apart), as the synthetic town's Velodyne model (plvo_synth.sensors) has them
 HDL64E_ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.8, 32)])
 BEAM_COUNTS = (8, 16, 32, 64)
 

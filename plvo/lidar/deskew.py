@@ -15,10 +15,10 @@ the back end's job waits one frame for the motion to the next one, which the ret
 The returns' times are the data's own where it has them (ROS PointCloud2 `t`/`time`/`offset_time`, as
 `Frame.scan_time`, seconds relative to the frame's time) and otherwise follow from the azimuth (`azimuth_times`):
 a lidar turning clockwise seen from above once a frame, facing forward (azimuth 0) at the frame's time, as KITTI's
-HDL-64E is triggered and as the KITTI twins' sweep is simulated (plvo.data.synth.twin.lidars).
+HDL-64E is triggered and as the KITTI twins' sweep is simulated (plvo_synth.twin.lidars).
 
 numpy only: the tracking thread deskews a keyframe's registration scan once, for both workers that register it
-(plvo.system), when the motion after the frame is known.
+(plvo.runtime.system), when the motion after the frame is known.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 the sweep's motion the compensation removed, and whether a ring holds more than one turn.
 
 A sweep turning clockwise seen from above begins and ends behind the sensor (azimuth +-180 deg; KITTI's HDL-64E
-and the twins, plvo.data.synth.twin.lidars), its start on the left (just below +180) and its end on the right
+and the twins, plvo_synth.twin.lidars), its start on the left (just below +180) and its end on the right
 (just above -180), one sweep's duration apart. In a raw sweep one ring's returns on flat ground lie on a circle
 round the sensor however it moved, so they meet at the seam. A compensation moves every return into the sensor
 frame at one instant: the start's back by the motion before that instant, the end's forward by the motion after

@@ -17,7 +17,7 @@ BetweenFactors of consecutive keyframes as the current estimates relate them, ev
 Levenberg-Marquardt and keeps the result as its own estimate. The current estimates are the map's, refined by the
 back end's lidar-constrained bundle adjustment (and bent by the loops before, whose edges stay in the graph), as
 ORB-SLAM's essential graph takes them: the motions the tracker measured when each keyframe arrived are several times
-worse in heading (plvo.eval.stage_drift). The newest keyframe's pose is still the tracker's (its back-end result comes
+worse in heading (plvo_eval.stage_drift). The newest keyframe's pose is still the tracker's (its back-end result comes
 later), so the global bundle adjustment that follows, on the back end's registration edges, finishes the work.
 The system must apply the corrected poses to its map (and tracker) and tell the closer of later changes with
 `update_poses`; the distance a new keyframe adds to the drive (the odometry checks' measure) is taken from the

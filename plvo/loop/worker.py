@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from plvo.allocator import release_free_memory
 from plvo.backend.problem import BAResult
 from plvo.config import SystemConfig
-from plvo.heap import release_free_memory
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import SOURCES, LoopKeyframe
@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopJob:
-    """One keyframe for the loop closer: the keyframe (its scan deskewed where the data needs it, plvo.system),
+    """One keyframe for the loop closer: the keyframe (its scan deskewed where the data needs it, plvo.runtime.system),
     every keyframe pose (K,4,4) by id as the map had them, how many of the loop closer's corrections the map had
     applied then."""
 
@@ -170,7 +170,7 @@ class LoopCore:
         res = global_ba.optimize(problem, self.cfg.backend, loop_cfg, self.cfg.tracking.use_depth_priors,
                                  self.cfg.backend.stereo_baseline_m)
         del problem
-        release_free_memory()  # the adjustment's peak is freed but kept by the C heap otherwise (plvo.heap)
+        release_free_memory()  # the adjustment's peak is freed but kept by the C heap otherwise (plvo.allocator)
         timings = {"loop_global_ba": time.perf_counter() - t0}
         why = global_ba.implausible(poses, res, self.cfg.loop, job.correction_m)
         if why:

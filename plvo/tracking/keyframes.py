@@ -79,8 +79,8 @@ class KeyframeInfo:
     kf_id in the map; frame (image and scan); T_world_cam (4,4) at creation; features; depth_priors (None in
     the no-depth-priors ablation, except for lidar initialisations); point_landmark (N,) / line_landmark (M,):
     the landmark id of each feature (-1 none), already recorded as observations in the map; sweep: how its
-    registration scan is deskewed before the workers get it (plvo.lidar.deskew, plvo.system), None when it is not.
-    """
+    registration scan is deskewed before the workers get it (plvo.lidar.deskew, plvo.runtime.system), None when it is
+    not."""
 
     kf_id: int
     frame_index: int
