@@ -40,6 +40,7 @@ from plvo.results import TrackingResult
 from plvo.tracking import keyframes as kfp
 from plvo.tracking.association import FrameAssociation, search_by_projection
 from plvo.tracking.corrections import RELOCALISED, MapCorrection
+from plvo.tracking.correspondences import Correspondences
 from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
 from plvo.tracking.lidar_check import (
     CAMERA,
@@ -55,7 +56,7 @@ from plvo.tracking.lidar_check import (
     same_scan,
 )
 from plvo.tracking.map import LandmarkMap
-from plvo.tracking.pnpl import refine_pose, snap_pose, solve_pnpl
+from plvo.tracking.pnpl import PnPLResult, refine_pose, snap_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
 from plvo.tracking.time_offset import OffsetEstimate, TimeOffsetEstimator
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
@@ -247,7 +248,7 @@ class Frontend:
         corr = self._correspondences(prev, feats, pm, lm)
         timings["matching"] = time.perf_counter() - t
         t = time.perf_counter()
-        sol = solve_pnpl(self.K, corr["pts"], corr["uv"], corr["lines"], corr["segs"], T_pred, self.cfg.tracking)
+        sol = solve_pnpl(self.K, *corr.solver_inputs(), T_pred, self.cfg.tracking)
         timings["pnpl"] = time.perf_counter() - t
         if not sol.success:
             first = sol.message
@@ -285,8 +286,8 @@ class Frontend:
                 pm, lm = _no_matches(), _no_matches()  # the first matching's pairs are not the solution's
                 source = CAMERA_SEEDED
             else:
-                msg = (f"frame {frame.index}: tracking lost ({sol.message}; {len(corr['uv'])} point and "
-                       f"{len(corr['segs'])} line matches to landmarks); re-initialised from the current lidar depth")
+                msg = (f"frame {frame.index}: tracking lost ({sol.message}; {corr.n_points} point and "
+                       f"{corr.n_lines} line matches to landmarks); re-initialised from the current lidar depth")
                 log.info(msg)  # one warning an episode names the frames (CheckLog)
                 self.checks.note(frame.index, "tracking lost", f"{sol.message}; the lidar "
                                  f"{'could not judge' if lidar is not None else 'was not asked'}: the motion "
@@ -318,8 +319,8 @@ class Frontend:
         self._motion_known = True
         self._held = None
         assoc = FrameAssociation.empty(feats.n_points, feats.n_lines)
-        assoc.point_landmark[corr["p_cur"][p_in]] = corr["p_lm"][p_in]
-        assoc.line_landmark[corr["l_cur"][l_in]] = corr["l_lm"][l_in]
+        assoc.point_landmark[corr.point_features[p_in]] = corr.point_landmarks[p_in]
+        assoc.line_landmark[corr.line_features[l_in]] = corr.line_landmarks[l_in]
         kf_track = np.full(feats.n_points, -1, np.int64)
         kf_track[pm.pairs[:, 1]] = prev.kf_track[pm.pairs[:, 0]]
         self.map.mark_seen(assoc.point_landmark[assoc.point_landmark >= 0],
@@ -333,8 +334,8 @@ class Frontend:
             keyframe, n_new = self._make_keyframe(frame, state, decision.reason, from_lidar=False)
             timings["keyframe"] = time.perf_counter() - t
         self._prev = state
-        n_found = len(corr["p_lm"]) - len(sol.point_inliers)
-        n_found_l = len(corr["l_lm"]) - len(sol.line_inliers)
+        n_found = corr.n_points - len(sol.point_inliers)
+        n_found_l = corr.n_lines - len(sol.line_inliers)
         msg = (f"frame {frame.index}: {int(p_in.sum())}/{len(p_in)} point ({n_found} re-found by projection) and "
                f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers"
                + (f"; keyframe ({decision.reason})" if keyframe else ""))
@@ -511,19 +512,17 @@ class Frontend:
         lm = _remap(self._match_lines(sub, feats, self.cfg.matching, predicted_segments=pred_seg), l_rows)
         return pm, lm
 
-    def _correspondences(self, prev: _FrameState, feats: FeatureSet, pm: Matches, lm: Matches) -> dict:
+    def _correspondences(self, prev: _FrameState, feats: FeatureSet, pm: Matches, lm: Matches) -> Correspondences:
         """3D-2D matches from the 2D-2D matches whose previous feature is tracked to a live landmark."""
         p_lm, p_cur = _tracked(prev.assoc.point_landmark, pm, self.map.point_alive)
         l_lm, l_cur = _tracked(prev.assoc.line_landmark, lm, self.map.line_alive)
-        return {
-            "p_lm": p_lm, "p_cur": p_cur, "pts": self.map.point_positions(p_lm),
-            "uv": feats.keypoints[p_cur].astype(float).reshape(-1, 2),
-            "l_lm": l_lm, "l_cur": l_cur, "lines": self.map.line_endpoints(l_lm),
-            "segs": feats.segments[l_cur].astype(float).reshape(-1, 4),
-        }
+        return Correspondences(
+            p_lm, p_cur, self.map.point_positions(p_lm), feats.keypoints[p_cur].astype(float).reshape(-1, 2),
+            l_lm, l_cur, self.map.line_endpoints(l_lm), feats.segments[l_cur].astype(float).reshape(-1, 4))
 
-    def _search_landmarks(self, feats: FeatureSet, T: np.ndarray, corr: dict, p_in: np.ndarray, l_in: np.ndarray,
-                          widen: float = 1.0, refine: bool = True):
+    def _search_landmarks(self, feats: FeatureSet, T: np.ndarray, corr: Correspondences, p_in: np.ndarray,
+                          l_in: np.ndarray, widen: float = 1.0, refine: bool = True
+                          ) -> tuple[np.ndarray, Correspondences, np.ndarray, np.ndarray]:
         """Re-find landmarks of the recent keyframes (and, for lines, of the previous frame) that the
         frame-to-frame matching lost: project them with pose T, match by descriptor near the projection (points
         within cfg.tracking.search_radius_px, lines on the projected line, see plvo.tracking.search), refine the
@@ -533,15 +532,17 @@ class Frontend:
         cfg = self.cfg.tracking
         if cfg.search_keyframes <= 0 or not self._recent_kfs:
             return T, corr, p_in, l_in
-        corr = dict(corr)
-        n_p = self._search_points(feats, T, corr, widen * cfg.search_radius_px)
-        n_l = self._search_lines(feats, T, corr, widen) if self.uses_lines and cfg.search_lines else 0
+        n_p, n_l = corr.n_points, corr.n_lines
+        corr = self._search_points(feats, T, corr, widen * cfg.search_radius_px)
+        if self.uses_lines and cfg.search_lines:
+            corr = self._search_lines(feats, T, corr, widen)
+        n_p, n_l = corr.n_points - n_p, corr.n_lines - n_l
         if n_p + n_l == 0:
             return T, corr, p_in, l_in
         p_in = np.r_[p_in, np.zeros(n_p, bool)]
         l_in = np.r_[l_in, np.zeros(n_l, bool)]
         if refine:
-            T, p_in, l_in = refine_pose(self.K, T, corr["pts"], corr["uv"], corr["lines"], corr["segs"], cfg)
+            T, p_in, l_in = refine_pose(self.K, T, *corr.solver_inputs(), cfg)
         return T, corr, p_in, l_in
 
     def _search_candidates(self, kind: str, matched: np.ndarray) -> np.ndarray:
@@ -550,53 +551,48 @@ class Frontend:
         ids = np.setdiff1d(ids[ids >= 0], matched)
         return ids[(self.map.point_alive if kind == "point" else self.map.line_alive)(ids)]
 
-    def _search_points(self, feats: FeatureSet, T: np.ndarray, corr: dict, radius_px: float) -> int:
-        """Extend corr (in place) by point landmarks found near their projection; returns how many."""
-        cand = self._search_candidates("point", corr["p_lm"])
+    def _search_points(self, feats: FeatureSet, T: np.ndarray, corr: Correspondences,
+                       radius_px: float) -> Correspondences:
+        """corr with the point landmarks found near their projection added."""
+        cand = self._search_candidates("point", corr.point_landmarks)
         if len(cand) == 0:
-            return 0
+            return corr
         uv, z = project(self.K, se3.transform_points(se3.inv(T), self.map.point_positions(cand)))
         uv[(z < 0.5) | ~in_image(uv, self.calib.width, self.calib.height)] = np.nan
         free = np.ones(feats.n_points, bool)
-        free[corr["p_cur"]] = False
+        free[corr.point_features] = False
         rows, kps = search_by_projection(uv, self.map.point_descriptors(cand), feats.keypoints, feats.descriptors,
                                          free, radius_px, self.cfg.matching.point_max_hamming)
-        corr["p_lm"] = np.r_[corr["p_lm"], cand[rows]]
-        corr["p_cur"] = np.r_[corr["p_cur"], kps]
-        corr["pts"] = np.r_[corr["pts"], self.map.point_positions(cand[rows])]
-        corr["uv"] = np.r_[corr["uv"], feats.keypoints[kps].astype(float).reshape(-1, 2)]
-        return len(rows)
+        return corr.with_points(cand[rows], kps, self.map.point_positions(cand[rows]),
+                                feats.keypoints[kps].astype(float).reshape(-1, 2))
 
-    def _search_lines(self, feats: FeatureSet, T: np.ndarray, corr: dict, widen: float) -> int:
-        """Extend corr (in place) by line landmarks found on their projected line; returns how many."""
+    def _search_lines(self, feats: FeatureSet, T: np.ndarray, corr: Correspondences,
+                      widen: float) -> Correspondences:
+        """corr with the line landmarks found on their projected line added."""
         cfg = self.cfg.tracking
-        cand = self._search_candidates("line", corr["l_lm"])
+        cand = self._search_candidates("line", corr.line_landmarks)
         if len(cand) == 0 or feats.n_lines == 0:
-            return 0
+            return corr
         ends = self.map.line_endpoints(cand)
         proj = project_segments(self.K, T, ends, self.calib.width, self.calib.height)
         free = np.ones(feats.n_lines, bool)
-        free[corr["l_cur"]] = False
+        free[corr.line_features] = False
         rows, segs = search_lines_by_projection(
             proj, self.map.line_descriptors(cand), feats.segments, feats.line_descriptors, free,
             widen * cfg.line_search_px, widen * cfg.line_search_angle_deg, cfg.line_search_overlap,
             self.cfg.matching.line_max_lbd)
-        corr["l_lm"] = np.r_[corr["l_lm"], cand[rows]]
-        corr["l_cur"] = np.r_[corr["l_cur"], segs]
-        corr["lines"] = np.r_[corr["lines"], ends[rows]]
-        corr["segs"] = np.r_[corr["segs"], feats.segments[segs].astype(float).reshape(-1, 4)]
-        return len(rows)
+        return corr.with_lines(cand[rows], segs, ends[rows], feats.segments[segs].astype(float).reshape(-1, 4))
 
-    def _rescue(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray, corr: dict,
+    def _rescue(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray, corr: Correspondences,
                 timings: dict[str, float]):
         """Frame-to-frame PnPL failed. Search the recent keyframes' landmarks around their predicted projections
         in a wider window, and, as the prediction itself is suspect (a turn that begins or ends), match the
         previous frame again without any prediction and let RANSAC find the pose; keep the better."""
         t = time.perf_counter()
-        none = np.zeros(len(corr["p_lm"]), bool)
-        _, wide, _, _ = self._search_landmarks(feats, T_pred, corr, none, np.zeros(len(corr["l_lm"]), bool),
+        none = np.zeros(corr.n_points, bool)
+        _, wide, _, _ = self._search_landmarks(feats, T_pred, corr, none, np.zeros(corr.n_lines, bool),
                                                widen=3.0, refine=False)
-        sol = solve_pnpl(self.K, wide["pts"], wide["uv"], wide["lines"], wide["segs"], T_pred, self.cfg.tracking)
+        sol = solve_pnpl(self.K, *wide.solver_inputs(), T_pred, self.cfg.tracking)
         # All of them, and the one with more inliers: at a turn's start the wide window alone found 27 inliers
         # for a pose 2.6 m off (synthetic town, 12.5 m/s, yaw 4 -> 9 deg a frame). Without a prediction the
         # ratio test starves on repeated facades (8 matches at a synthetic turn, tracking lost), so the motion
@@ -610,12 +606,13 @@ class Frontend:
         timings["rescue"] = time.perf_counter() - t
         return sol, wide
 
-    def _match_and_solve(self, prev: _FrameState, feats: FeatureSet, T_guess: np.ndarray | None):
+    def _match_and_solve(self, prev: _FrameState, feats: FeatureSet, T_guess: np.ndarray | None
+                         ) -> tuple[PnPLResult, Correspondences]:
         """Match the previous frame predicted by T_guess (None: without a prediction) and solve from it ->
         (PnPLResult, correspondences)."""
         pm, lm = self._match(prev, feats, T_guess)
         c = self._correspondences(prev, feats, pm, lm)
-        return solve_pnpl(self.K, c["pts"], c["uv"], c["lines"], c["segs"], T_guess, self.cfg.tracking), c
+        return solve_pnpl(self.K, *c.solver_inputs(), T_guess, self.cfg.tracking), c
 
     def relocalise_keyframe(self) -> MapCorrection | None:
         """The newest keyframe's pose solved again on its tracked matches against the landmarks as the map holds
@@ -654,7 +651,7 @@ class Frontend:
 
     # ---- keyframes and landmarks -------------------------------------------------------------------------
     def _initialise(self, frame: Frame, feats: FeatureSet, T: np.ndarray, status: str, reason: str, msg: str,
-                    timings: dict[str, float], corr: dict | None = None) -> FrontendResult:
+                    timings: dict[str, float], corr: Correspondences | None = None) -> FrontendResult:
         """A keyframe whose landmarks all come from the current lidar depth (first frame, or after a loss)."""
         state = _FrameState(frame.index, feats, np.array(T, dtype=float),
                             FrameAssociation.empty(feats.n_points, feats.n_lines),
@@ -773,15 +770,16 @@ class Frontend:
     def _result(self, frame, state, status, msg, reason, n_pm, n_lm, corr, inliers, n_new, keyframe, timings,
                 pnpl_residuals=(_NONE, _NONE)):
         if inliers is None or status == REINITIALISED:
-            inliers = (np.zeros(len(corr["uv"]), bool), np.zeros(len(corr["segs"]), bool))
+            inliers = (np.zeros(corr.n_points, bool), np.zeros(corr.n_lines, bool))
         p_in, l_in = inliers
         return FrontendResult(
             frame_index=frame.index, T_world_cam=state.T_world_cam.copy(), n_point_matches=n_pm,
-            n_line_matches=n_lm, point_inliers=corr["p_cur"][p_in], line_inliers=corr["l_cur"][l_in],
+            n_line_matches=n_lm, point_inliers=corr.point_features[p_in], line_inliers=corr.line_features[l_in],
             is_keyframe=keyframe is not None, ok=status != REINITIALISED, message=msg,
             T_world_cam0=state.T_world_cam @ self._T_cam_cam0, status=status, keyframe_reason=reason,
-            point_uv=corr["uv"], point_landmark=corr["p_lm"], point_inlier=p_in, line_segments=corr["segs"],
-            line_landmark=corr["l_lm"], line_inlier=l_in, n_new_points=n_new[0], n_new_lines=n_new[1],
+            point_uv=corr.point_pixels, point_landmark=corr.point_landmarks, point_inlier=p_in,
+            line_segments=corr.line_segments, line_landmark=corr.line_landmarks, line_inlier=l_in,
+            n_new_points=n_new[0], n_new_lines=n_new[1],
             association=FrameAssociation(state.assoc.point_landmark.copy(), state.assoc.line_landmark.copy()),
             features=state.features, keyframe=keyframe, timings=dict(timings),
             pnpl_point_residuals=pnpl_residuals[0], pnpl_line_residuals=pnpl_residuals[1],
