@@ -13,11 +13,14 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from plvo.atomic import write_text_atomic
-from plvo.config_ranges import check_ranges
+from plvo.config_ranges import check_ranges, choices_of
 from plvo.errors import ConfigError
+
+# A choice field's type is the Literal of its values: a file is checked against it when read (plvo.config_ranges)
+RegistrationMethod = Literal["ndt", "icp", "gicp"]  # plvo.lidar.registration's
 
 
 @dataclass(frozen=True)
@@ -173,8 +176,8 @@ class CrossCheckConfig:
 
 @dataclass(frozen=True)
 class RegistrationConfig:
-    method: str = "ndt"  # "ndt", or "icp" / "gicp" directly
-    fallback: str = "icp"  # used when NDT fails; "none" to disable
+    method: RegistrationMethod = "ndt"  # "ndt", or "icp" / "gicp" directly
+    fallback: RegistrationMethod | Literal["none"] = "icp"  # used when NDT fails; "none" to disable
     voxel_m: float = 0.6  # as accurate as 0.5 on 04 with 2/3 of the points (docs/results/defaults.md)
     ndt_resolution_m: float = 1.0
     max_iterations: int = 30
@@ -187,11 +190,11 @@ class RegistrationConfig:
     max_jump_deg: float = 5.0
     # "inverse": exp(-2 (e_bar/e_hat)^2), so that a registration worse than the tracker's pose gets a small weight
     # (plvo/lidar/registration.py, docs/results/defaults.md); "paper": exp(-2 (e_hat/e_bar)^2) as printed.
-    zeta_formula: str = "inverse"
+    zeta_formula: Literal["paper", "inverse"] = "inverse"
     # Motion compensation of each scan's sweep before registration (plvo.lidar.deskew), from the tracker's motion:
     # "auto" deskews the scans the dataset says are not compensated (Dataset.scans_compensated), "on" always,
     # "off" never.
-    deskew: str = "auto"
+    deskew: Literal["auto", "on", "off"] = "auto"
 
 
 @dataclass(frozen=True)
@@ -236,9 +239,9 @@ class BackendConfig:
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
     outlier_px: float = 4.0
     concurrent: bool = True  # run the back end and the loop closer beside the tracker (False: inline, lag 0)
-    # Where the concurrent workers run (plvo.runtime.workers): "process" (no GIL shared with the tracker; the features
-    #  are then extracted in a process of their own too, plvo.features.worker) or "thread".
-    executor: str = "process"
+    # Where the concurrent workers run (plvo.runtime.workers): "process" (no GIL shared with the tracker; the
+    # features are then extracted in a process of their own too, plvo.features.worker) or "thread".
+    executor: Literal["process", "thread"] = "process"
     # How long the run waits for a worker (back end, loop closer, features) that sends nothing while its result is
     # due, before it fails the run naming the worker (a stopped or deadlocked process; a dead one is seen at once).
     # The slowest single job measured, a global bundle adjustment near the end of the 4541-frame soak, took 5.3 s
@@ -252,7 +255,7 @@ class BackendConfig:
     # What a keyframe's scan is registered to for the relative-pose factors (plvo.lidar.local_map): "local_map", a
     # voxel map of the last local_map_keyframes keyframes' scans in the world frame, or "keyframe", the previous
     # keyframe's scan alone (NDT keyframe to keyframe).
-    lidar_target: str = "local_map"
+    lidar_target: Literal["local_map", "keyframe"] = "local_map"
     local_map_keyframes: int = 10
     local_map_voxel_m: float = 0.5
     # Source points a map alignment uses at most, evenly thinned from the keyframe's registration cloud (an ICP
@@ -412,6 +415,11 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
                     isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
                 raise ConfigError(f"config key '{name}' must be a list of numbers, got {value!r}")
             kwargs[key] = tuple(float(v) for v in value)
+            continue
+        if choices_of(want):
+            if value not in choices_of(want):  # a choice: its values are its type's (Literal, or a union of them)
+                raise ConfigError(f"config key '{name}' = {value!r} must be one of {', '.join(choices_of(want))}")
+            kwargs[key] = value
             continue
         if want is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)

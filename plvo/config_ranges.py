@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,14 +130,30 @@ ORDERED: tuple[tuple[str, str], ...] = (
 )
 
 
-# String fields with a fixed set of values, checked when the file is read (some are used only off the defaults'
-# path: a typo there would otherwise pass until a run took that path).
-CHOICES: dict[str, tuple[str, ...]] = {"backend.executor": ("process", "thread"),
-                                       "registration.deskew": ("auto", "on", "off"),
-                                       "backend.lidar_target": ("local_map", "keyframe"),
-                                       "registration.method": ("ndt", "icp", "gicp"),
-                                       "registration.fallback": ("ndt", "icp", "gicp", "none"),
-                                       "registration.zeta_formula": ("paper", "inverse")}
+def choices_of(hint: Any) -> tuple[str, ...]:
+    """The values a choice field takes (its type a Literal, or a union of Literals: the choices stand beside the
+    field in plvo.config); () for any other type."""
+    if typing.get_origin(hint) is typing.Literal:
+        return tuple(typing.get_args(hint))
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        parts = [choices_of(a) for a in typing.get_args(hint)]
+        return tuple(v for p in parts for v in p) if all(parts) else ()
+    return ()
+
+
+def choice_fields(cfg: Any) -> dict[str, tuple[tuple[str, ...], Any]]:
+    """Dotted key -> (its choices, its value) of every choice field of a (nested) config dataclass. Checked when
+    a file is read, also those used only off the defaults' path (a typo there would otherwise pass until a run
+    took that path)."""
+    out: dict[str, tuple[tuple[str, ...], Any]] = {}
+    for section in dataclasses.fields(cfg):
+        sub = getattr(cfg, section.name)
+        hints = typing.get_type_hints(type(sub))
+        for f in dataclasses.fields(sub):
+            if choices_of(hints[f.name]):
+                out[f"{section.name}.{f.name}"] = (choices_of(hints[f.name]), getattr(sub, f.name))
+    return out
+
 
 # Every numeric field is bounded above too: by its range, else by the cap of its unit (the key's suffix), else by
 # the cap of its kind. A count of 1e12 features, a window of a million keyframes or a timeout of 1e30 s would pass
@@ -176,9 +193,7 @@ def check_ranges(cfg: Any) -> None:
         for v in items:
             if not rng.contains(float(v)):
                 raise ConfigError(f"config key '{key}' = {v!r} is out of range (must be {rng})")
-    for key, allowed in CHOICES.items():
-        section, name = key.split(".")
-        value = getattr(getattr(cfg, section), name)
+    for key, (allowed, value) in choice_fields(cfg).items():
         if value not in allowed:
             raise ConfigError(f"config key '{key}' = {value!r} must be one of {', '.join(allowed)}")
     vocab = getattr(getattr(cfg, "loop", None), "vocab_dir", "")
