@@ -8,8 +8,10 @@ The stage engineers fill these; the recorders only read the fields documented he
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -121,3 +123,36 @@ class MetricsResult:
 
     frame_index: int
     values: Mapping[str, float]
+
+
+# What the run's record hands the evaluation (plvo.runtime.worker_stages.RunRecord; plvo_eval.stage_drift, soak)
+@dataclass(frozen=True)
+class StageSteps:
+    """One back-end result: the frames (previous, newest) of its window's last two keyframes and, by stage
+    ("tracker", "scale", "ba"), their relative motion T_prev_new (4,4, camera) as that stage left it (what
+    plvo_eval.stage_drift and stage_stats judge each stage by)."""
+
+    frames: tuple[int, int]
+    steps: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class CorrectionEvent:
+    """An applied loop or global BA correction: its source (plvo.tracking.corrections), the frame of the keyframe
+    it was made at and the frame it was applied at, the keyframes the map held, how far it moved them (the most,
+    and the newest) in metres, the worker's seconds; for a loop, its query and match keyframes."""
+
+    source: str
+    keyframe_frame: int
+    applied_at_frame: int
+    keyframes: int
+    max_move_m: float
+    newest_move_m: float
+    seconds: float
+    query_keyframe: int | None = None
+    match_keyframe: int | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """As the soak's JSON holds it (the loop's keyframes only for a loop)."""
+        out = dataclasses.asdict(self)
+        return {k: v for k, v in out.items() if v is not None or k not in ("query_keyframe", "match_keyframe")}

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from plvo.data.dataset import Dataset
 from plvo.errors import PlvoError
 from plvo.geometry import se3
+from plvo.results import StageSteps
 from plvo_eval.kiss import (
     KissOptions,
     KissOutput,
@@ -143,6 +144,6 @@ def kiss_summary(per_frame: dict[str, np.ndarray], frame_indices: Any = None, gt
     out = {f"kiss_{k}": describe(per_frame[k], "KISS-ICP registration", units[k]) for k in KISS_FIELDS}
     if gt_cam0 is not None and est_cam0 is not None and frame_indices is not None:
         frames = [int(f) for f in frame_indices]
-        steps = [{"frames": (a, b), "steps": {}} for a, b in zip(frames[:-1], frames[1:])]
+        steps = [StageSteps((a, b), {}) for a, b in zip(frames[:-1], frames[1:])]
         out.update(drift_stats({"final": stage_drift(steps, frames, gt_cam0, est_cam0)["final"]}))
     return out

@@ -25,7 +25,7 @@ import numpy as np
 from plvo.config import SystemConfig
 from plvo.geometry import se3
 from plvo.recording import Recorder, RunInfo
-from plvo.results import KeyframeResult, LoopResult, TimingResult, TrackingResult
+from plvo.results import CorrectionEvent, KeyframeResult, LoopResult, TimingResult, TrackingResult
 from plvo_eval import provenance
 
 log = logging.getLogger(__name__)
@@ -207,9 +207,10 @@ def _windows(tap: SoakTap, t0: float, gt, index: dict[int, int], window: int) ->
     return out
 
 
-def _with_errors(event: dict, tap: SoakTap, gt, index: dict[int, int]) -> dict:
-    """A correction event with the tracked error of the frame before it was applied and of the frame after."""
-    event = dict(event)
+def _with_errors(correction: CorrectionEvent, tap: SoakTap, gt, index: dict[int, int]) -> dict:
+    """A correction event (as the soak's JSON holds it) with the tracked error of the frame before it was applied
+    and of the frame after."""
+    event = correction.as_dict()
     if gt is None:
         return event
     for key, f in (("error_before_m", event["applied_at_frame"] - 1), ("error_after_m", event["applied_at_frame"])):

@@ -22,12 +22,12 @@ not run on a step (the scale correction without a registration, a discarded adju
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
-from typing import Any
+from collections.abc import Iterable
 
 import numpy as np
 
 from plvo.geometry import se3
+from plvo.results import StageSteps
 
 STAGES = ("tracker", "scale", "ba", "final")
 _UP_WORLD = np.array([0.0, -1.0, 0.0])  # KITTI's cam0: y down
@@ -66,7 +66,7 @@ def _summary(rows: list[tuple[float, float, float, float]], segment_m: float) ->
             "scale_bias_pct": round(float((est.sum() / path - 1.0) * 100), 4) if path > 0 else None}
 
 
-def stage_drift(stage_steps: Iterable[Mapping[str, Any]], frame_indices: Iterable[int], gt_cam0: np.ndarray,
+def stage_drift(stage_steps: Iterable[StageSteps], frame_indices: Iterable[int], gt_cam0: np.ndarray,
                 est_cam0: np.ndarray, T_cam0_cam: np.ndarray | None = None,
                 segment_m: float = 100.0) -> dict[str, dict[str, float | int | None]]:
     """The back end's per-keyframe stage record (plvo.runtime.worker_stages.RunRecord.stage_steps: frames (prev, new)
@@ -77,12 +77,12 @@ def stage_drift(stage_steps: Iterable[Mapping[str, Any]], frame_indices: Iterabl
     C_inv = se3.inv(C)
     rows: dict[str, list[tuple[float, float, float, float]]] = {s: [] for s in STAGES}
     for entry in stage_steps:
-        a, b = (int(f) for f in entry["frames"])
+        a, b = (int(f) for f in entry.frames)
         if a not in row or b not in row or a == b:
             continue
         Ga, Gb = gt_cam0[row[a]], gt_cam0[row[b]]
         T_gt = se3.inv(Ga) @ Gb
-        for stage, T in entry["steps"].items():
+        for stage, T in entry.steps.items():
             if stage in rows:
                 rows[stage].append(step_errors(C @ np.asarray(T) @ C_inv, T_gt, Ga[:3, :3]))
         rows["final"].append(step_errors(se3.inv(est_cam0[row[a]]) @ est_cam0[row[b]], T_gt, Ga[:3, :3]))

@@ -39,7 +39,7 @@ import numpy as np
 from plvo.depth.extract import DepthDebug
 from plvo.geometry import se3
 from plvo.recording import RunInfo, StageResult
-from plvo.results import MetricsResult, TrackingResult
+from plvo.results import MetricsResult, StageSteps, TrackingResult
 from plvo.types import (
     DEPTH_BAD_FIT,
     DEPTH_GRAZING_RAY,
@@ -266,13 +266,13 @@ _POOLED = {"pnpl_point_residual_px", "pnpl_line_residual_px", "point_prior_resid
            "point_prior_lidar_points", "line_prior_lidar_points"}
 
 
-def backend_moves(stage_steps: Iterable[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+def backend_moves(stage_steps: Iterable[StageSteps]) -> dict[str, dict[str, Any]]:
     """The back end's stage record (RunOutput.stage_steps: per keyframe, stage -> T_prev_new (4,4)) -> how far the
     scale correction moved the newest keyframe relative to the previous one (from the tracker's), and how far the
     bundle adjustment moved it (from the scale correction's, else the tracker's), in m and deg."""
     moves: dict[str, list[float]] = {"scale_move_m": [], "scale_move_deg": [], "ba_move_m": [], "ba_move_deg": []}
     for entry in stage_steps:
-        steps = entry["steps"]
+        steps = entry.steps
         before = steps.get("tracker")
         for stage in ("scale", "ba"):
             after = steps.get(stage)

@@ -9,6 +9,7 @@ import pytest
 
 from plvo.data.trajectory import write_kitti_poses
 from plvo.geometry import se3
+from plvo.results import StageSteps
 from plvo_eval.kitti_metric import evaluate
 from plvo_eval.report import build_report, report_json, report_markdown
 from plvo_eval.revisits import loop_edge_errors
@@ -36,7 +37,7 @@ def test_each_stage_is_charged_with_the_heading_and_scale_it_left():
     for a, b in zip(frames[:-3:3], frames[3::3]):  # a keyframe every 3 frames
         truth = se3.inv(gt[a]) @ gt[b]
         tracker = truth @ se3.from_rt(se3.so3_exp(np.radians(0.05) * UP_CAM), [0.0, 0.0, 0.03])  # 5 deg / 100 m
-        steps.append({"frames": (a, b), "steps": {"tracker": tracker, "ba": truth.copy()}})
+        steps.append(StageSteps((a, b), {"tracker": tracker, "ba": truth.copy()}))
     out = stage_drift(steps, frames, gt, est)
     tr, ba, final = out["tracker"], out["ba"], out["final"]
     assert tr["steps"] == ba["steps"] == final["steps"] == 100 and out["scale"]["steps"] == 0
@@ -46,8 +47,8 @@ def test_each_stage_is_charged_with_the_heading_and_scale_it_left():
     assert ba["yaw_deg_per_100m"] == pytest.approx(0.0, abs=1e-9) and ba["scale_pct"] == pytest.approx(0, abs=1e-9)
     assert final["yaw_deg_per_100m"] == pytest.approx(1.0, rel=0.02) and final["scale_pct"] == pytest.approx(0.2,
                                                                                                           rel=0.02)
-    other_way = [{"frames": (a, b), "steps": {"tracker": se3.inv(gt[a]) @ gt[b] @ se3.from_rt(
-        se3.so3_exp(np.radians(-0.05) * UP_CAM), [0.0, 0.0, 0.0])}} for a, b in (e["frames"] for e in steps)]
+    other_way = [StageSteps((a, b), {"tracker": se3.inv(gt[a]) @ gt[b] @ se3.from_rt(
+        se3.so3_exp(np.radians(-0.05) * UP_CAM), [0.0, 0.0, 0.0])}) for a, b in (e.frames for e in steps)]
     turned = stage_drift(other_way, frames, gt, est)["tracker"]
     assert turned["yaw_bias_deg_per_100m"] == pytest.approx(-tr["yaw_bias_deg_per_100m"], rel=0.05)  # the other way
     short = stage_drift(steps[:5], frames, gt, est)["tracker"]

@@ -15,7 +15,7 @@ from plvo.config import SystemConfig, merge
 from plvo.data.kitti import KittiOdometry
 from plvo.geometry import se3
 from plvo.recording import FanOut
-from plvo.results import MetricsResult, TrackingResult
+from plvo.results import MetricsResult, StageSteps, TrackingResult
 from plvo.types import DepthPriors, FeatureSet
 from plvo_app.cli import main
 from plvo_eval.kiss import KissOptions, run_kiss
@@ -147,8 +147,8 @@ def test_backend_moves_measure_each_stage_against_the_one_before():
     step = se3.from_rt(np.eye(3), [0.0, 0.0, 1.0])
     scaled = se3.from_rt(np.eye(3), [0.0, 0.0, 1.02])
     turned = scaled @ se3.exp(np.r_[0.0, 0.0, 0.0, 0.0, np.radians(0.5), 0.0])
-    moves = backend_moves([{"frames": (0, 3), "steps": {"tracker": step, "scale": scaled, "ba": turned}},
-                           {"frames": (3, 6), "steps": {"tracker": step, "ba": scaled}}])
+    moves = backend_moves([StageSteps((0, 3), {"tracker": step, "scale": scaled, "ba": turned}),
+                           StageSteps((3, 6), {"tracker": step, "ba": scaled})])
     assert moves["scale_move_m"]["n"] == 1 and moves["scale_move_m"]["value"] == pytest.approx(0.02)
     # the first keyframe's adjustment turned the scale correction's step by 0.5 deg in place, the second's moved
     # the tracker's (no scale correction) by 2 cm without turning it

@@ -11,7 +11,7 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.recording import Recorder
-from plvo.results import EDGE_LOOP
+from plvo.results import EDGE_LOOP, StageSteps
 from plvo.runtime.system import System
 
 
@@ -25,8 +25,7 @@ class RunOutput:
     n_keyframes: int
     n_lost: int
     finished_at: float = 0.0  # time.perf_counter() once the workers' last results were applied (before closing)
-    # the back end's per-keyframe stage record (plvo.runtime.worker_stages.RunRecord.stage_steps; plvo_eval.stage_drift)
-    stage_steps: tuple[dict, ...] = ()
+    stage_steps: tuple[StageSteps, ...] = ()  # the back end's stage record, one a result (plvo_eval.stage_drift)
     # the frame of each keyframe (by id) and the accepted loops as the map keeps them: (match keyframe, query
     # keyframe, T_match_query (4,4) of the tracked camera) (plvo_eval.revisits judges them against ground truth)
     keyframe_frames: tuple[int, ...] = ()

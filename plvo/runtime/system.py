@@ -37,7 +37,7 @@ from plvo.features.matching import match_lines, match_points
 from plvo.features.worker import FeaturesCore
 from plvo.priority import LOOKAHEAD_NICENESS
 from plvo.recording import NullRecorder, Recorder, RunInfo
-from plvo.results import KeyframeResult, TimingResult, TrackingResult
+from plvo.results import CorrectionEvent, KeyframeResult, TimingResult, TrackingResult
 from plvo.runtime.frame_poses import FramePoses
 from plvo.runtime.lookahead import Lookahead
 from plvo.runtime.prefetch import prefetched
@@ -114,7 +114,7 @@ class System:
         return self.record.stats
 
     @property
-    def corrections(self) -> list[dict[str, Any]]:
+    def corrections(self) -> list[CorrectionEvent]:
         """One entry an applied loop or global BA correction: what it moved, when (for the soak and the log)."""
         return self.record.corrections
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from plvo.allocator import release_free_memory
 from plvo.config import SystemConfig
-from plvo.results import EDGE_LOOP, GraphResult, MapResult, MetricsResult
+from plvo.results import EDGE_LOOP, CorrectionEvent, GraphResult, MapResult, MetricsResult, StageSteps
 from plvo.runtime.scheduler import Channel, Lags, Scheduler
 from plvo.runtime.workers import OrderedWorker
 from plvo.tracking.corrections import GLOBAL_BA, LOOP, MapCorrection
@@ -46,15 +46,13 @@ class LoopStats:
 
 @dataclass
 class RunRecord:
-    """What the stages tell the run: per-stage seconds (one entry a time a stage ran), the counts, and one entry an
-    applied loop or global BA correction (what it moved, when)."""
+    """What the stages tell the run: per-stage seconds (one entry a time a stage ran), the counts, one entry an
+    applied loop or global BA correction, one an applied back-end result's stage record."""
 
     timings: dict[str, list[float]]
     stats: LoopStats = field(default_factory=LoopStats)
-    corrections: list[dict[str, Any]] = field(default_factory=list)
-    # One entry a back-end result: the frames of the window's previous and newest keyframe and, by stage ("tracker",
-    # "scale", "ba"), their relative motion T_prev_new (4,4, camera) as that stage left it (plvo_eval.stage_drift).
-    stage_steps: list[dict[str, Any]] = field(default_factory=list)
+    corrections: list[CorrectionEvent] = field(default_factory=list)
+    stage_steps: list[StageSteps] = field(default_factory=list)
 
     def add_timings(self, seconds: dict[str, float]) -> None:
         for name, value in seconds.items():
@@ -130,8 +128,8 @@ class BackendStage:
             return
         prev, new = (int(k) for k in out.stage_kf_ids)
         steps = {stage: np.linalg.inv(T[0]) @ T[1] for stage, T in out.stage_poses.items()}
-        self._record.stage_steps.append({"frames": (self._map.keyframe_frame(prev), self._map.keyframe_frame(new)),
-                                         "steps": steps})
+        self._record.stage_steps.append(StageSteps((self._map.keyframe_frame(prev), self._map.keyframe_frame(new)),
+                                                   steps))
 
 
 class LoopStage:
@@ -196,16 +194,13 @@ class LoopStage:
                           self._scheduler.loop_corrections_applied)
         self._scheduler.submit(self.channel, job, self._now(), lag=self._lags.global_ba)
 
-    def _event(self, c: MapCorrection, before: np.ndarray, out: Any) -> dict[str, Any]:
+    def _event(self, c: MapCorrection, before: np.ndarray, out: Any) -> CorrectionEvent:
         """What an applied loop-closer correction did: source, frames, keyframes, how far it moved them."""
         after = self._map.poses()
         moved = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
-        event = {"source": c.source, "keyframe_frame": int(out.frame_index), "applied_at_frame": int(self._now()),
-                 "keyframes": int(len(after)), "max_move_m": float(moved.max(initial=0.0)),
-                 "newest_move_m": float(moved[-1]) if len(moved) else 0.0,
-                 "seconds": float(sum(out.timings.values()) if c.source == GLOBAL_BA else
-                                  out.timings.get("loop_correct", 0.0))}
-        if c.source == LOOP:
-            e = c.edges[0]
-            event.update(query_keyframe=int(e.j), match_keyframe=int(e.i))
-        return event
+        loop = c.edges[0] if c.source == LOOP else None
+        return CorrectionEvent(
+            c.source, int(out.frame_index), int(self._now()), int(len(after)), float(moved.max(initial=0.0)),
+            float(moved[-1]) if len(moved) else 0.0,
+            float(sum(out.timings.values()) if c.source == GLOBAL_BA else out.timings.get("loop_correct", 0.0)),
+            None if loop is None else int(loop.j), None if loop is None else int(loop.i))
