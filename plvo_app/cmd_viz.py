@@ -46,6 +46,7 @@ from plvo_app.guards import check_port, deferred_signals, exit_status_of, limit_
 from plvo_app.run_outputs import (
     MIN_TRACKED_SHARE,
     Outputs,
+    RunEnd,
     RunLog,
     check_outputs,
     remove_made,
@@ -407,7 +408,7 @@ def run(args: argparse.Namespace) -> int:
         _unstart(outs, made)
         raise
     viewer = None
-    status, reason, error, exit_code, fps, at = "failed", "", None, 0, 0.0, [dataset.frame_indices[0]]
+    end, fps, at = RunEnd(), 0.0, [dataset.frame_indices[0]]
     recorders = system.recorder.recorders  # filled below, inside the try: a failing recorder is a failed run
     try:
         recorders.append(RerunRecorder(outs.rrd, options, next_free=args.rrd is None))
@@ -424,12 +425,11 @@ def run(args: argparse.Namespace) -> int:
         fps = _run_frames(system, dataset, at)
         if system.restarts:  # the config the poses come from: given again, it runs them without a restart
             _save_config(system.config, outs.out)
-        status = "complete"
+        end.status = "complete"
     except KeyboardInterrupt as exc:
-        status, exit_code = "interrupted", exit_status_of(exc)
-        reason = signal_name(exc)
+        end.status, end.exit_code, end.reason = "interrupted", exit_status_of(exc), signal_name(exc)
     except PlvoError as exc:
-        error, reason = exc, str(exc)
+        end.fail(exc)
         runlog.traceback(f"frame {at[0]}: {exc}")
     except Exception as exc:  # noqa: BLE001 - the last resort: one line, the traceback in the run log
         at[0] = getattr(exc, "plvo_frame", at[0])  # an error of the frames read ahead: the frame it came from
@@ -437,26 +437,24 @@ def run(args: argparse.Namespace) -> int:
         cause = f": {type(exc.__cause__).__name__}: {exc.__cause__}" if exc.__cause__ is not None else ""
         limit = limit_reached(exc)
         what = limit if limit is not None else f"unexpected {type(exc).__name__}: {exc}{cause}"
-        error = RunFailed(f"frame {at[0]}: {what} (see the log {runlog.path})")
-        reason = str(error)
+        end.fail(RunFailed(f"frame {at[0]}: {what} (see the log {runlog.path})"))
     # From here to the exit, Ctrl-C and SIGTERM are held: the clean-up is not cut short by a second Ctrl-C, and
     # after a complete run a signal quits the viewer (exit 0, nothing said "interrupted").
     with deferred_signals("writing the results") as held:
-        if status == "interrupted":
-            print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({reason}); keeping what was "
+        if end.status == "interrupted":
+            print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({end.reason}); keeping what was "
                   "recorded", file=sys.stderr)
-        status, reason, error, summary = _finish(system, recorders, outs, dataset, status, reason, error, fps,
-                                                 runlog, args.format)
+        summary = _finish(system, recorders, outs, dataset, end, fps, runlog, args.format)
         latest = point_latest(outs.out) if args.out is None and summary else None
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
-        if error is None and status in ("complete", DEGRADED):
+        if end.whole:
             for line in summary_lines(summary):
                 print(line, file=sys.stderr)
             print(f"summary:   {(latest or outs.out) / SUMMARY_FILE}", file=sys.stderr)
             tracked, share = tracked_summary(system.frames_done, system.n_lost)  # the last line: how it ended
-            print(f"{status}: {system.frames_done} frames at {fps:.1f} frames/s, {tracked} tracked ({share:.0%})"
+            print(f"{end.status}: {system.frames_done} frames at {fps:.1f} frames/s, {tracked} tracked ({share:.0%})"
                   f"{trust_line(system)}", file=sys.stderr)
-            exit_code = DEGRADED_EXIT if status == DEGRADED else exit_code
+            end.exit_code = DEGRADED_EXIT if end.status == DEGRADED else end.exit_code
             if viewer is not None and not held.seen:
                 held.what = None
                 print(f"serving the run: http://127.0.0.1:{viewer.port} - Ctrl-C to quit", file=sys.stderr)
@@ -464,51 +462,53 @@ def run(args: argparse.Namespace) -> int:
                     time.sleep(0.2)
         if viewer is not None:
             viewer.close()
-    if error is not None:
-        if error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
-            raise RunFailed(str(error)) from None
-        raise error
-    return exit_code
+    if end.error is not None:
+        if end.error.exit_status != RunFailed.exit_status:  # bad data met mid-run, a failed write: the run failed
+            raise RunFailed(str(end.error)) from None
+        raise end.error
+    return end.exit_code
 
 
-def _finish(system, recorders, outs, dataset, status, reason, error, fps, runlog, fmt="kitti"):
-    """Write the poses, stamp and close the recording, then write timings.json with the status as it ends up:
-    (status, reason, error). poses.txt comes first, so that neither the recording nor timings.json says
+def _finish(system, recorders, outs, dataset, end: RunEnd, fps, runlog, fmt="kitti") -> dict:
+    """Write the poses, stamp and close the recording, then write timings.json with the status as it ends up (end,
+    settled here) -> the summary. poses.txt comes first, so that neither the recording nor timings.json says
     "complete" for a run whose poses could not be written."""
-    if status == "complete":
+    if end.status == "complete":
         tracked, share = tracked_summary(system.frames_done, system.n_lost)
         if share < MIN_TRACKED_SHARE:
-            reason = (f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), "
-                      f"below {MIN_TRACKED_SHARE:.0%}")
-            error = RunFailed(f"{reason}: results marked failed, no poses.txt")
+            end.reason = (f"tracked only {tracked} of {system.frames_done} frames ({share:.0%}), "
+                          f"below {MIN_TRACKED_SHARE:.0%}")
+            end.error = RunFailed(f"{end.reason}: results marked failed, no poses.txt")
         elif system.n_lost:
             # the trajectory is not whole: some frames hold the motion model's guess, neither sensor's
-            status, reason = DEGRADED, (f"{system.n_lost} of {system.frames_done} frames lost: neither the camera nor "
-                                        "the lidar placed them, their poses are the motion model's guess")
+            end.status, end.reason = DEGRADED, (f"{system.n_lost} of {system.frames_done} frames lost: neither the "
+                                                "camera nor the lidar placed them, their poses are the motion model's "
+                                                "guess")
     scored = None  # (poses, truth or None) once poses.txt is written
-    if status in ("complete", DEGRADED) and error is None:
+    if end.whole:
         try:
             scored = _write_poses(outs.out, system, dataset, fmt)
         except PlvoError as exc:
-            error, reason = exc, str(exc)
-    if error is not None:
-        status = "failed"
+            end.error, end.reason = exc, str(exc)
+    if end.error is not None:
+        end.status = "failed"
         scored = None
     try:
         if recorders:
-            recorders[0].set_status(status, system.frames_done)
+            recorders[0].set_status(end.status, system.frames_done)
         system.close()
     except PlvoError as exc:  # the recording's last write failed
-        if error is None:
-            status, reason, error, scored = "failed", str(exc), exc, None
+        if end.error is None:
+            end.fail(exc)
+            scored = None
             (outs.out / POSES_FILE).unlink(missing_ok=True)
             (outs.out / TRUTH_FILE).unlink(missing_ok=True)
     summary: dict = {}
     try:
-        write_json(outs.out / "timings.json", _timings(system, status, reason, fps, len(dataset)))
-        summary = _write_summary(outs, system, dataset, status, reason, fps, fmt, scored)
+        write_json(outs.out / "timings.json", _timings(system, end.status, end.reason, fps, len(dataset)))
+        summary = _write_summary(outs, system, dataset, end.status, end.reason, fps, fmt, scored)
     except PlvoError as exc:
-        error = error or exc
+        end.error = end.error or exc
         log.error("%s", exc)
     runlog.close()
-    return status, reason, error, summary
+    return summary

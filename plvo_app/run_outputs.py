@@ -15,10 +15,10 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from plvo.atomic import write_text_atomic
-from plvo.errors import OutputError, RunFailed
+from plvo.errors import OutputError, PlvoError, RunFailed
 from plvo_app.terminal import file_level
 
 log = logging.getLogger(__name__)
@@ -29,6 +29,27 @@ RRD_BYTES_PER_FRAME = 100_000
 RESULTS_BYTES_PER_FRAME = 1_000
 RESULTS_BYTES_FIXED = 200_000  # config.toml, timings.json, run.log
 MIN_TRACKED_SHARE = 0.5  # a run that tracked less than this share of its frames is "failed", not "complete"
+
+RunStatus = Literal["complete", "degraded", "interrupted", "failed"]  # timings.json's, summary.json's, the recording's
+
+
+@dataclass
+class RunEnd:
+    """How a run ended, settled step by step from its frames to its files (docs/faults.md): the status, why (empty
+    when complete), the error raised once the results are written (None: none) and the exit status."""
+
+    status: RunStatus = "failed"
+    reason: str = ""
+    error: PlvoError | None = None
+    exit_code: int = 0
+
+    def fail(self, error: PlvoError) -> None:
+        self.status, self.reason, self.error = "failed", str(error), error
+
+    @property
+    def whole(self) -> bool:
+        """The run's trajectory was written: complete, or degraded (some frames the motion model's guess)."""
+        return self.error is None and self.status in ("complete", "degraded")
 
 
 @dataclass(frozen=True)
