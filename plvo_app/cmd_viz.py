@@ -54,8 +54,9 @@ from plvo_app.run_outputs import (
     write_json,
 )
 from plvo_app.run_summary import POSES_FILE, SUMMARY_FILE, TRUTH_FILE, point_latest, summary_lines
-from plvo_app.source_args import add_source_arguments, source_options
+from plvo_app.source_args import add_source_arguments
 from plvo_app.terminal import progress_enabled
+from plvo_app.viz_options import VizOptions
 
 log = logging.getLogger(__name__)
 
@@ -126,45 +127,42 @@ def run_info(name: str, dataset, cfg: SystemConfig, command_line: str, /, **extr
         extra={"config_toml": config_to_toml(cfg), **extra, "input_files": input_files(dataset)})
 
 
-def _resolve_config(args: argparse.Namespace) -> SystemConfig:
-    cfg = load_config(args.config)
-    if args.time_offset is not None:
+def _resolve_config(opts: VizOptions) -> SystemConfig:
+    cfg = load_config(opts.config)
+    if opts.time_offset is not None:
         cfg = config_from_dict({**config_to_dict(cfg), "crosscheck": {**config_to_dict(cfg)["crosscheck"],
-                                                                     "time_offset_s": args.time_offset}})
-    return with_ablation(cfg, args.ablation) if args.ablation else cfg
+                                                                     "time_offset_s": opts.time_offset}})
+    return with_ablation(cfg, opts.ablation) if opts.ablation else cfg
 
 
-def _open(args: argparse.Namespace):
+def _open(opts: VizOptions):
     """(dataset, run label, identity): the dataset named by --root/$KITTI_ROOT and --seq, or the synthetic town
     ("town00") when no dataset is given; identity says where it came from (recorded for plvo reproduce)."""
-    from plvo.data.registry import ROOT_ENV, only_sequence, open_dataset, parse_frames
+    from plvo.data.registry import ROOT_ENV, only_sequence, open_dataset
     from plvo_app.run_identity import dataset_identity
 
-    frames = parse_frames(args.frames) if args.frames else None
-    if args.root is None and not os.environ.get(ROOT_ENV) and args.seq is None:
+    frames = opts.frame_slice
+    if opts.root is None and not os.environ.get(ROOT_ENV) and opts.seq is None:
         root, seq = _synthetic_town(frames)
         dataset = open_dataset(root, seq, frames)
-        return dataset, f"town{seq}", dataset_identity(dataset, root, args.frames, synthetic=True)
-    root = args.root if args.root is not None else os.environ.get(ROOT_ENV)
-    seq = args.seq
+        return dataset, f"town{seq}", dataset_identity(dataset, root, opts.frames, synthetic=True)
+    root = opts.root if opts.root is not None else os.environ.get(ROOT_ENV)
+    seq = opts.seq
     # a bag or plain folder needs no --seq; a dataset root's only sequence runs, several are listed (exit 2)
     if seq is None and root is not None:
-        what = "--root" if args.root is not None else f"${ROOT_ENV}"
+        what = "--root" if opts.root is not None else f"${ROOT_ENV}"
         seq = only_sequence(root, what)
         if seq is not None:
             print(f"{what} {root}: running {seq}, the only sequence there", file=sys.stderr)
-    dataset = open_dataset(root, seq, frames, camera=args.camera, options=source_options(args))
-    return dataset, dataset.sequence, dataset_identity(dataset, root, args.frames, synthetic=False)
+    dataset = open_dataset(root, seq, frames, camera=opts.camera, options=opts.source)
+    return dataset, dataset.sequence, dataset_identity(dataset, root, opts.frames, synthetic=False)
 
 
-def recorder_options(args: argparse.Namespace):
+def recorder_options(opts: VizOptions):
     """RerunOptions from --record, --detail and --embed-inputs."""
-    from plvo_app.recording_levels import DetailOptions, parse_window
     from plvo_app.rerun_recorder import RerunOptions
 
-    detail = DetailOptions(level=args.record, windows=tuple(parse_window(w) for w in args.detail))
-    embed = parse_window(args.embed_inputs) if args.embed_inputs else None
-    return RerunOptions(detail=detail, embed_inputs=embed)
+    return RerunOptions(detail=opts.detail, embed_inputs=opts.embed)
 
 
 def _synthetic_town(frames: slice | None = None) -> tuple[Path, str]:
@@ -225,24 +223,24 @@ def _claim_folder(path: Path) -> tuple[Path, list[Path]]:
 RESULTS_FILES = (POSES_FILE, TRUTH_FILE, SUMMARY_FILE, "timings.json", "config.toml", "run.log")
 
 
-def _outputs(args: argparse.Namespace, sequence: str) -> tuple[Outputs, list[Path]]:
+def _outputs(opts: VizOptions, sequence: str) -> tuple[Outputs, list[Path]]:
     """The run's outputs -> (Outputs, the folders made for them here: the default results folder, claimed)."""
     run = f"{sequence}_{time.strftime('%Y%m%d-%H%M%S')}"
-    if args.rrd is not None and args.rrd.exists():
-        raise RecordingError(f"{args.rrd}: already exists; plvo-viz never overwrites a recording")
-    if args.out is not None and args.out.is_dir() and any(args.out.iterdir()):
-        raise RecordingError(f"{args.out}: results folder exists and is not empty; choose another --out")
-    if args.rrd is not None and args.out is not None and args.rrd.name in RESULTS_FILES \
-            and args.rrd.resolve().parent == args.out.resolve():
-        raise OutputError(f"--rrd {args.rrd}: the run writes its {args.rrd.name} there, over the recording; name "
-                          f"the recording otherwise (e.g. {args.out / 'run.rrd'})")
-    out, made = args.out, []
+    if opts.rrd is not None and opts.rrd.exists():
+        raise RecordingError(f"{opts.rrd}: already exists; plvo-viz never overwrites a recording")
+    if opts.out is not None and opts.out.is_dir() and any(opts.out.iterdir()):
+        raise RecordingError(f"{opts.out}: results folder exists and is not empty; choose another --out")
+    if opts.rrd is not None and opts.out is not None and opts.rrd.name in RESULTS_FILES \
+            and opts.rrd.resolve().parent == opts.out.resolve():
+        raise OutputError(f"--rrd {opts.rrd}: the run writes its {opts.rrd.name} there, over the recording; name "
+                          f"the recording otherwise (e.g. {opts.out / 'run.rrd'})")
+    out, made = opts.out, []
     if out is None:
         out, made = _claim_folder(Path("results") / run)
         run = out.name
     # a default recording's name is claimed when the recorder creates it (RrdFileSink, next_free: run-2.rrd...)
-    rrd = args.rrd or Path("recordings") / f"{run}.rrd"
-    return Outputs(rrd.stem if args.rrd else run, rrd, out), made
+    rrd = opts.rrd or Path("recordings") / f"{run}.rrd"
+    return Outputs(rrd.stem if opts.rrd else run, rrd, out), made
 
 
 def _timings(system, status: str, reason: str, fps: float, n_total: int) -> dict:
@@ -367,26 +365,27 @@ def _unstart(outs: Outputs, made: list[Path]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    serve = not args.no_serve
+    opts = VizOptions.from_args(args)
+    serve = opts.serve
     if serve:
-        check_port(args.port)
-    if args.replay is not None:
+        check_port(opts.port)
+    if opts.replay is not None:
         from plvo_app.cmd_view import view
 
-        return view(args.replay, port=args.port, serve=serve)
+        return view(opts.replay, port=opts.port, serve=serve)
     from plvo.runtime.system import System
     from plvo_app.rerun_recorder import RerunRecorder
 
-    cfg = _resolve_config(args)
-    options = recorder_options(args)
-    dataset, label, identity = _open(args)
+    cfg = _resolve_config(opts)
+    options = recorder_options(opts)
+    dataset, label, identity = _open(opts)
     emb = options.embed_inputs
     if emb is not None and not any(emb[0] <= f < emb[1] for f in dataset.frame_indices):
-        raise DatasetError(f"--embed-inputs {args.embed_inputs}: none of these frames runs (frames "
+        raise DatasetError(f"--embed-inputs {opts.embed_text}: none of these frames runs (frames "
                            f"{dataset.frame_indices[0]}..{dataset.frame_indices[-1]})")
-    outs, claimed = _outputs(args, label)
+    outs, claimed = _outputs(opts, label)
     try:
-        made = claimed + check_outputs(outs, len(dataset), args.rrd is not None, args.out is not None)
+        made = claimed + check_outputs(outs, len(dataset), opts.rrd is not None, opts.out is not None)
     except BaseException:
         remove_made(claimed)
         raise
@@ -411,15 +410,15 @@ def run(args: argparse.Namespace) -> int:
     end, fps, at = RunEnd(), 0.0, [dataset.frame_indices[0]]
     recorders = system.recorder.recorders  # filled below, inside the try: a failing recorder is a failed run
     try:
-        recorders.append(RerunRecorder(outs.rrd, options, next_free=args.rrd is None))
+        recorders.append(RerunRecorder(outs.rrd, options, next_free=opts.rrd is None))
         outs = dataclasses.replace(outs, rrd=recorders[-1].path)  # another run may have taken the default name
         if serve:
             from plvo_app.viser_viewer import SceneStore, ViserRecorder, ViserViewer
 
-            viewer = ViserViewer(SceneStore(), port=args.port, live=True)
+            viewer = ViserViewer(SceneStore(), port=opts.port, live=True)
             recorders.append(ViserRecorder(viewer))
-            if viewer.port != args.port:  # taken since check_port: viser moved on, and says nothing itself
-                print(f"port {args.port} was taken meanwhile; serving on {viewer.port}", file=sys.stderr)
+            if viewer.port != opts.port:  # taken since check_port: viser moved on, and says nothing itself
+                print(f"port {opts.port} was taken meanwhile; serving on {viewer.port}", file=sys.stderr)
             print(f"viser viewer: http://127.0.0.1:{viewer.port}", file=sys.stderr)
         system.start(info)
         fps = _run_frames(system, dataset, at)
@@ -444,8 +443,8 @@ def run(args: argparse.Namespace) -> int:
         if end.status == "interrupted":
             print(f"interrupted after {system.frames_done} of {len(dataset)} frames ({end.reason}); keeping what was "
                   "recorded", file=sys.stderr)
-        summary = _finish(system, recorders, outs, dataset, end, fps, runlog, args.format)
-        latest = point_latest(outs.out) if args.out is None and summary else None
+        summary = _finish(system, recorders, outs, dataset, end, fps, runlog, opts.pose_format)
+        latest = point_latest(outs.out) if opts.out is None and summary else None
         print(f"recording: {outs.rrd}\nresults:   {outs.out}/", file=sys.stderr)
         if end.whole:
             for line in summary_lines(summary):

@@ -18,6 +18,7 @@ import pytest
 from faults_table import VIZ, read_stderr_until
 
 from plvo_app.rrd_reader import read_rrd
+from plvo_app.viz_options import VizOptions
 
 REPO = Path(__file__).resolve().parents[1]
 FRAMES = list(range(3, 10))
@@ -157,7 +158,6 @@ def test_summary_scores_the_run_as_eval_metric_does(kitti_run, kitti_root):
 
 def test_second_run_never_overwrites(kitti_run, monkeypatch):
     """Two runs started in the same second get distinct recordings and results folders (in-process: the naming)."""
-    import argparse
 
     from plvo_app import cmd_viz
 
@@ -165,7 +165,7 @@ def test_second_run_never_overwrites(kitti_run, monkeypatch):
     monkeypatch.chdir(cwd)
     stamp = re.search(r"04_(\d{8}-\d{6})", rrd.name).group(1)
     monkeypatch.setattr(cmd_viz.time, "strftime", lambda fmt: stamp)
-    args = argparse.Namespace(rrd=None, out=None)
+    args = VizOptions()  # no --rrd, no --out
     second, made = cmd_viz._outputs(args, "04")
     assert second.rrd.name == f"04_{stamp}-2.rrd" and second.out.name == f"04_{stamp}-2"
     assert (cwd / rrd.relative_to(cwd)).is_file() and (out / "poses.txt").is_file()
@@ -270,7 +270,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
         return synth_seq
 
     monkeypatch.setattr("plvo_synth.default_sequence_root", fake_generate)
-    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:5"]))
+    dataset, label, _ = cmd_viz._open(VizOptions.from_args(parser.parse_args(["--frames", "0:5"])))
     err = capsys.readouterr().err
     assert calls == [5] and label == f"town{DEFAULT_SEQUENCE}" and len(dataset) == 5  # the frames asked, no more
     assert "no --root and no $KITTI_ROOT: running the synthetic town" in err and "generating frames 0..4" in err
@@ -283,7 +283,7 @@ def test_no_dataset_runs_the_synthetic_town(synth_seq, tmp_path, monkeypatch, ca
     key = cache.settings_hash(DEFAULT_SETTINGS, DEFAULT_SEQUENCE)
     (tmp_path / "cache" / "synth").mkdir(parents=True)
     (tmp_path / "cache" / "synth" / key).symlink_to(synth_seq, target_is_directory=True)
-    dataset, label, _ = cmd_viz._open(parser.parse_args(["--frames", "0:20"]))
+    dataset, label, _ = cmd_viz._open(VizOptions.from_args(parser.parse_args(["--frames", "0:20"])))
     err = capsys.readouterr().err
     assert len(dataset) == 20 and dataset.gt_T_world_cam is not None and "cached in" in err
 

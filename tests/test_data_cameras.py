@@ -77,10 +77,12 @@ def test_grey_camera_has_no_colour(synth_seq):
 
 def test_viz_camera_option_opens_camera_2(colour_only):
     from plvo_app import cmd_viz
+    from plvo_app.viz_options import VizOptions
 
     parser = argparse.ArgumentParser()
     cmd_viz.add_arguments(parser)
-    dataset, label, _ = cmd_viz._open(parser.parse_args(["--root", str(colour_only), "--seq", "00", "--camera", "2"]))
+    dataset, label, _ = cmd_viz._open(VizOptions.from_args(
+        parser.parse_args(["--root", str(colour_only), "--seq", "00", "--camera", "2"])))
     assert label == "00" and dataset[0].color is not None
 
 

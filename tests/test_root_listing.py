@@ -18,6 +18,7 @@ from plvo.data.registry import describe_sequences, list_sequences, only_sequence
 from plvo.errors import DatasetError
 from plvo_app import cmd_viz
 from plvo_app.cli import main_viz
+from plvo_app.viz_options import VizOptions
 
 RAW_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_raw"
 DRIVE = "2011_09_26_drive_0009"
@@ -50,10 +51,10 @@ def _raw_drive(root: Path, drive: str) -> None:
     (d / "image_00" / "data" / "0000000000.png").write_bytes(b"")
 
 
-def _args(*argv: str) -> argparse.Namespace:
+def _args(*argv: str) -> VizOptions:
     p = argparse.ArgumentParser()
     cmd_viz.add_arguments(p)
-    return p.parse_args(list(argv))
+    return VizOptions.from_args(p.parse_args(list(argv)))
 
 
 def test_several_are_listed_on_one_line(town, tmp_path, capsys, monkeypatch):
