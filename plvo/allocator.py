@@ -26,7 +26,7 @@ TOP_PAD_BYTES = 16 << 20
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3  # malloc.h
 
 
-def c_library():
+def c_library() -> ctypes.CDLL | None:
     """The C library (glibc on Linux), or None elsewhere."""
     if not sys.platform.startswith("linux"):
         return None

@@ -292,7 +292,8 @@ class _Normal:
         return np.concatenate([d_p, d_l])
 
 
-def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
+def _evaluate(problem: BAProblem, T_cw: np.ndarray, pts: np.ndarray, U: np.ndarray, W: np.ndarray, lay: _Layout,
+              sel: dict[str, np.ndarray], cfg: BackendConfig, baseline: float) -> _Blocks:
     """Whitened residual blocks at a state (their Jacobians computed when asked for: _Blocks.terms)."""
     b = _Blocks()
     o = sel["pt"]
@@ -315,7 +316,8 @@ def _evaluate(problem, T_cw, pts, U, W, lay, sel, cfg, baseline) -> _Blocks:
     return b
 
 
-def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok=None, ln_obs_ok=None) -> dict[str, np.ndarray]:
+def _select(problem: BAProblem, pt_ok: np.ndarray, ln_ok: np.ndarray, use_depth_priors: bool,
+            pt_obs_ok: np.ndarray | None = None, ln_obs_ok: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Observation rows of the used landmarks (and of the observations kept, when masks are given)."""
     pt_use, ln_use = pt_ok[problem.pt_idx], ln_ok[problem.ln_idx]
     pt = np.flatnonzero(pt_use if pt_obs_ok is None else pt_use & pt_obs_ok)
@@ -331,7 +333,7 @@ def _select(problem, pt_ok, ln_ok, use_depth_priors, pt_obs_ok=None, ln_obs_ok=N
 _State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-def _apply(delta, lay, T_cw, pts, U, W) -> _State:
+def _apply(delta: np.ndarray, lay: _Layout, T_cw: np.ndarray, pts: np.ndarray, U: np.ndarray, W: np.ndarray) -> _State:
     T_new, pts_new, U_new, W_new = T_cw.copy(), pts.copy(), U.copy(), W.copy()
     for k in np.flatnonzero(lay.pose >= 0):
         T_new[k] = se3.exp(delta[lay.pose[k]:lay.pose[k] + 6]) @ T_cw[k]
@@ -413,7 +415,8 @@ def _line_endpoints(old: np.ndarray, U: np.ndarray, W: np.ndarray) -> np.ndarray
     return p0[:, None] + s[:, :, None] * u[:, None]
 
 
-def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.ndarray, np.ndarray]:
+def _carry(problem: BAProblem, T_cw_old: np.ndarray, T_cw_new: np.ndarray, pts: np.ndarray, lines: np.ndarray,
+           pt_ok: np.ndarray, ln_ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Move landmarks seen by a single keyframe rigidly with it (in place) -> (P,) and (L,) bool moved.
 
     A lone observation fixes a landmark in its camera (it is at its optimum wherever the camera goes), so leaving
@@ -437,8 +440,10 @@ def _carry(problem, T_cw_old, T_cw_new, pts, lines, pt_ok, ln_ok) -> tuple[np.nd
     return out[0], out[1]
 
 
-def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok, ln_obs_ok, cfg, use_depth_priors,
-                         baseline):
+def _levenberg_marquardt(problem: BAProblem, state: _State, origin: np.ndarray, pt_ok: np.ndarray, ln_ok: np.ndarray,
+                         pt_obs_ok: np.ndarray | None, ln_obs_ok: np.ndarray | None, cfg: BackendConfig,
+                         use_depth_priors: bool, baseline: float
+                         ) -> tuple[_State, float, float, int, np.ndarray, np.ndarray]:
     """LM from state over the selected observations (pt_obs_ok / ln_obs_ok masks, None: all) -> (state, initial
     cost, cost, iterations, pt_ok, ln_ok); landmarks the window cannot determine are dropped first (copies)."""
     pt_ok, ln_ok = pt_ok.copy(), ln_ok.copy()
@@ -488,8 +493,8 @@ def _levenberg_marquardt(problem, state: _State, origin, pt_ok, ln_ok, pt_obs_ok
     return state, initial_cost, cost, it, pt_ok, ln_ok
 
 
-def _outliers(problem, state: _State, origin, pt_ok, ln_ok, cfg, use_depth_priors,
-              baseline) -> tuple[np.ndarray, np.ndarray]:
+def _outliers(problem: BAProblem, state: _State, origin: np.ndarray, pt_ok: np.ndarray, ln_ok: np.ndarray,
+              cfg: BackendConfig, use_depth_priors: bool, baseline: float) -> tuple[np.ndarray, np.ndarray]:
     """-> (O,) and (M,) bool: point / line observations of used landmarks whose residual (all rows, in the
     factor's units: pixels, and metres for a line's prior row) exceeds cfg.outlier_px at `state`."""
     lay = _Layout(problem, pt_ok, ln_ok)

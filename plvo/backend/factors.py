@@ -248,7 +248,8 @@ def _robust(base: gtsam.noiseModel.Base, huber_px: float, sigma: float) -> gtsam
     return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma), base)
 
 
-def _add_points(graph, values, problem, cfg, pt_ok, use_depth_priors, baseline) -> None:
+def _add_points(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, problem: BAProblem, cfg: BackendConfig,
+                pt_ok: np.ndarray, use_depth_priors: bool, baseline: float) -> None:
     K = problem.K
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     cal = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
@@ -268,7 +269,8 @@ def _add_points(graph, values, problem, cfg, pt_ok, use_depth_priors, baseline) 
             graph.add(gtsam.GenericProjectionFactorCal3_S2(uv.astype(float), mono, X(int(k)), P(int(i)), cal))
 
 
-def _add_lines(graph, values, problem, cfg, ln_ok, use_depth_priors) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def _add_lines(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, problem: BAProblem, cfg: BackendConfig,
+               ln_ok: np.ndarray, use_depth_priors: bool) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     anchors: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     order = np.argsort(problem.ln_idx, kind="stable")
     idx_sorted = problem.ln_idx[order]
@@ -320,7 +322,8 @@ def _line_endpoints(old: np.ndarray, U: np.ndarray, W: np.ndarray) -> np.ndarray
     return p0 + ((old - p0) @ u)[:, None] * u
 
 
-def extract_result(problem, values, pt_ok, ln_ok, anchors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def extract_result(problem: BAProblem, values: gtsam.Values, pt_ok: np.ndarray, ln_ok: np.ndarray,
+                   anchors: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """gtsam values -> poses (K,4,4), points (P,3), line endpoints (L,2,3); unused landmarks unchanged."""
     T = np.stack([values.atPose3(X(k)).matrix() for k in range(problem.n_keyframes)])
     pts = problem.points.astype(float).copy()

@@ -16,12 +16,16 @@ sigma, as the paper's single Sigma^L does.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from plvo.errors import PlvoError
 from plvo.geometry import se3
 from plvo.geometry.camera import in_image, project
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 
 def _check(name: str, arr: np.ndarray, shape: tuple) -> np.ndarray:
@@ -128,7 +132,8 @@ class BAResult:
     time_s: float
 
 
-def relative_pose_information(sigma_m: float, sigma_deg: float, rotation_ratio=None) -> np.ndarray:
+def relative_pose_information(sigma_m: float, sigma_deg: float,
+                              rotation_ratio: Sequence[float] | np.ndarray | None = None) -> np.ndarray:
     """BAProblem.rel_weight: the (6,) per-component information of relative-pose factors in (rho, phi) order from
     their translation and rotation sigmas; with rotation_ratio (R,) one row per factor, its rotation's scaled by it
     (plvo.tracking.corrections.GraphEdge.rotation_ratio)."""

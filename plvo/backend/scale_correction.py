@@ -11,6 +11,7 @@ returned unchanged.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -39,7 +40,7 @@ def scale_problem(problem: BAProblem, newest_kf: int) -> BAProblem:
     )
 
 
-def correct_scale(problem: BAProblem, newest_kf: int, cfg: BackendConfig | None = None, **kwargs) -> BAResult:
+def correct_scale(problem: BAProblem, newest_kf: int, cfg: BackendConfig | None = None, **kwargs: Any) -> BAResult:
     """Optimise T_world_cam[newest_kf] (4,4) and its landmarks (world), older keyframes fixed -> BAResult of the window.
 
     kwargs go to `bundle_adjustment.optimize` (use_depth_priors, use_lines, stereo_baseline_m).

@@ -6,10 +6,15 @@ PNG files and the same images read from a bag give identical grey frames.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
 
 from plvo.errors import DatasetError
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 # ROS encodings (sensor_msgs/image_encodings.h) -> (channels, numpy dtype, OpenCV conversion to RGB or None)
 _ENCODINGS: dict[str, tuple[int, str, int | None]] = {
@@ -86,7 +91,7 @@ def decode_compressed(fmt: str, data: np.ndarray, where: str) -> np.ndarray:
     return image
 
 
-def read_image_file(path, frame: int) -> np.ndarray:
+def read_image_file(path: str | Path, frame: int) -> np.ndarray:
     """An image file (PNG, JPEG...) -> (H,W) grey or (H,W,3) RGB array, naming the file and frame on error."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:

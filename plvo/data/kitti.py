@@ -29,6 +29,7 @@ import json
 import logging
 import re
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -187,7 +188,7 @@ def _image_size(path: Path, frame: int) -> tuple[int, int]:
         raise DatasetError(f"{path}: unreadable image (frame {frame}): {exc}") from None
 
 
-def _calibration(calib, camera: int, width: int, height: int, elevation_offset_deg: float) -> Calibration:
+def _calibration(calib: Any, camera: int, width: int, height: int, elevation_offset_deg: float) -> Calibration:
     """pykitti calib namedtuple -> Calibration of the chosen camera (rectified)."""
     T_cam_velo = np.asarray(getattr(calib, f"T_cam{camera}_velo"), dtype=np.float64)
     T_cam0_cam = np.eye(4)
@@ -313,7 +314,7 @@ class _KittiSequence(SelectedFrames):
         return scan
 
 
-def _pykitti():
+def _pykitti() -> Any:
     """pykitti, imported on first use: it imports pandas (~0.3 s), which a command's --help need not wait for."""
     import pykitti
     import pykitti.utils
@@ -321,7 +322,7 @@ def _pykitti():
     return pykitti
 
 
-def _pykitti_odometry(root: str, sequence: str):
+def _pykitti_odometry(root: str, sequence: str) -> Any:
     """pykitti's odometry loader without its pose reading (which prints instead of raising)."""
 
     class _PykittiOdometry(_pykitti().odometry):  # type: ignore[misc]
@@ -551,7 +552,7 @@ def _oxts_records(oxts_dir: Path, stamps: Path, selected: tuple[int, ...]) -> tu
     return tuple(sorted(usable | wanted))
 
 
-def _load_pykitti_raw(root: Path, date: str, number: str, records: tuple[int, ...], oxts_dir: Path):
+def _load_pykitti_raw(root: Path, date: str, number: str, records: tuple[int, ...], oxts_dir: Path) -> Any:
     """pykitti.raw over the given oxts records, frame 0 first (the origin of pykitti's oxts poses)."""
     try:
         return _pykitti().raw(str(root), date, number, frames=list(records))
@@ -575,7 +576,7 @@ def _is_number(s: str) -> bool:
     return True
 
 
-def _raw_gt(data, T_cam0_cam: np.ndarray, record_ns: np.ndarray, frame_ns: np.ndarray) -> np.ndarray:
+def _raw_gt(data: Any, T_cam0_cam: np.ndarray, record_ns: np.ndarray, frame_ns: np.ndarray) -> np.ndarray:
     """(len,4,4) T_world_cam of the selected frames at their own times, world = cam0 of frame 0 at its time, from
     pykitti's oxts T_w_imu of the loaded records (their timestamps record_ns (R,)) and the frames' times frame_ns
     (1 + len,: frame 0, then the selection).

@@ -129,7 +129,7 @@ IMPLAUSIBLE_RANGE_M = 1e4
 _IMPLAUSIBLE_SHARE = 0.01  # a stray return may be garbage; a whole scan's worth is the wrong kind of file
 
 
-def check_scan_values(scan: np.ndarray, path, frame: int) -> None:
+def check_scan_values(scan: np.ndarray, path: Path | None, frame: int) -> None:
     """Refuse a scan whose coordinates are not plausible metres (DatasetError naming the file and frame)."""
     if len(scan) and scan.min() >= -IMPLAUSIBLE_RANGE_M and scan.max() <= IMPLAUSIBLE_RANGE_M:
         return  # every value near enough (intensities too): two whole-array reductions, 0.5 ms for 124k points

@@ -6,6 +6,7 @@ ROS 1 and ROS 2 differ in a few field names (CameraInfo `K` vs `k`); these helpe
 from __future__ import annotations
 
 from collections import deque
+from typing import Any
 
 import numpy as np
 
@@ -23,14 +24,14 @@ TF_TYPE = "tf2_msgs/msg/TFMessage"
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 
 
-def stamp_ns(msg, fallback_ns: int) -> int:
+def stamp_ns(msg: Any, fallback_ns: int) -> int:
     """Header stamp in nanoseconds; the bag's receive time when the header is unset (some drivers)."""
     stamp = msg.header.stamp
     ns = int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", getattr(stamp, "nsec", 0)))
     return ns if ns > 0 else int(fallback_ns)
 
 
-def image_array(msg, msgtype: str, where: str) -> np.ndarray:
+def image_array(msg: Any, msgtype: str, where: str) -> np.ndarray:
     """Image or CompressedImage -> (H,W) grey or (H,W,3) RGB."""
     if msgtype == COMPRESSED_TYPE:
         return decode_compressed(msg.format, msg.data, where)
@@ -38,7 +39,7 @@ def image_array(msg, msgtype: str, where: str) -> np.ndarray:
                       msg.data, where)
 
 
-def cloud_scan(msg, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+def cloud_scan(msg: Any, where: str) -> tuple[np.ndarray, np.ndarray | None]:
     """PointCloud2 -> (scan (N,4) float32, per-point seconds after the stamp or None)."""
     fields = [CloudField(str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields]
     stamp = msg.header.stamp
@@ -47,14 +48,14 @@ def cloud_scan(msg, where: str) -> tuple[np.ndarray, np.ndarray | None]:
                          bool(msg.is_bigendian), msg.data, stamp_s, where)
 
 
-def _field(msg, name: str) -> np.ndarray:
+def _field(msg: Any, name: str) -> np.ndarray:
     value = getattr(msg, name, None)
     if value is None:
         value = getattr(msg, name.upper())
     return np.asarray(value, dtype=np.float64).reshape(-1)
 
 
-def camera_model(msg, where: str) -> CameraModel:
+def camera_model(msg: Any, where: str) -> CameraModel:
     """CameraInfo -> CameraModel (K, D, R and the rectified matrix from P); `where` names the topic."""
     K = _field(msg, "k")
     if K.size != 9 or abs(K[0]) < 1e-12:
@@ -67,7 +68,7 @@ def camera_model(msg, where: str) -> CameraModel:
                        model=model, R=R, P=P)
 
 
-def _transform_matrix(tf) -> np.ndarray:
+def _transform_matrix(tf: Any) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     t, q = tf.transform.translation, tf.transform.rotation
@@ -87,7 +88,7 @@ class StaticTransforms:
     def __init__(self) -> None:
         self._edges: dict[str, dict[str, np.ndarray]] = {}
 
-    def add(self, msg) -> None:
+    def add(self, msg: Any) -> None:
         """One tf2_msgs/TFMessage."""
         for tf in msg.transforms:
             parent, child = _strip(tf.header.frame_id), _strip(tf.child_frame_id)

@@ -15,6 +15,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +37,10 @@ from plvo.data.ros_messages import (
 from plvo.data.trajectory import pair_nearest
 from plvo.errors import CalibrationError, DatasetError
 from plvo.types import Frame
+
+if TYPE_CHECKING:
+    from plvo.data.camera_model import CameraModel, Rectifier
+    from plvo.types import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +66,7 @@ class _Ref:
     stamp_ns: int
 
 
-def _open_reader(path: Path):
+def _open_reader(path: Path) -> Any:
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -76,7 +81,8 @@ def _open_reader(path: Path):
     return reader
 
 
-def _choose(path: Path, connections: list, wanted: str | None, types: tuple[str, ...], kind: str, option: str):
+def _choose(path: Path, connections: list, wanted: str | None, types: tuple[str, ...], kind: str, option: str
+            ) -> tuple[str, str]:
     """(topic, msgtype) chosen: the named topic, else the only one of `types`."""
     topics = {c.topic: c for c in connections}
     if wanted is not None:
@@ -94,7 +100,7 @@ def _choose(path: Path, connections: list, wanted: str | None, types: tuple[str,
     return found[0], topics[found[0]].msgtype
 
 
-def _camera_info(connections: list, image_topic: str):
+def _camera_info(connections: list, image_topic: str) -> str | None:
     """The CameraInfo topic beside the image topic (same namespace, or one up for image_raw/compressed), else the
     only one, else None."""
     infos = sorted({c.topic for c in connections if c.msgtype == INFO_TYPE})
@@ -137,7 +143,7 @@ class RosbagDataset(SelectedFrames):
 
     # --- indexing ---------------------------------------------------------------------------------------------
 
-    def _index(self, reader, info_topic: str | None):
+    def _index(self, reader: Any, info_topic: str | None) -> tuple[list[_Ref], list[_Ref], dict[str, object]]:
         images, scans = [], []
         ranks: dict[tuple[str, int], int] = {}
         self._info, self._tf = None, StaticTransforms()
@@ -193,7 +199,7 @@ class RosbagDataset(SelectedFrames):
                         scan_ns[nearest[bad]] * 1e-9)
         self._pairs = [(images[i], scans[int(nearest[i])]) for i in np.flatnonzero(ok)]
 
-    def _calibration(self, opts: SourceOptions, first: dict):
+    def _calibration(self, opts: SourceOptions, first: dict) -> tuple[Calibration, Rectifier | None]:
         image = image_array(first["image"], self._image_type, f"{self.path} {self.image_topic}")
         height, width = image.shape[:2]
         if opts.calib is not None:
@@ -213,7 +219,7 @@ class RosbagDataset(SelectedFrames):
             offset = opts.lidar_elevation_offset_deg
         return check_calibration(camera.calibration(T_cam_lidar, offset), str(source)), camera.rectifier()
 
-    def _bag_calibration(self, first: dict):
+    def _bag_calibration(self, first: dict) -> tuple[CameraModel, np.ndarray]:
         if self._info is None:
             others = ", ".join(self._info_topics)
             which = f"none of the CameraInfo topics ({others}) is beside it" if others else "no CameraInfo topic"
@@ -241,7 +247,7 @@ class RosbagDataset(SelectedFrames):
 
     # --- reading ----------------------------------------------------------------------------------------------
 
-    def _reader(self):
+    def _reader(self) -> Any:
         if self._reader_obj is None or self._reader_pid != os.getpid():
             self._reader_obj, self._reader_pid = _open_reader(self.path), os.getpid()
         return self._reader_obj
@@ -256,7 +262,7 @@ class RosbagDataset(SelectedFrames):
             self._reader_obj.close()
         self._reader_obj = None
 
-    def _message(self, topic: str, ref: _Ref):
+    def _message(self, topic: str, ref: _Ref) -> object:
         reader = self._reader()
         conns = [c for c in reader.connections if c.topic == topic]
         for k, (conn, _, raw) in enumerate(reader.messages(connections=conns, start=ref.bag_ns, stop=ref.bag_ns + 1)):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,7 @@ PathLike = str | os.PathLike[str]
 ROTATION_TOLERANCE = 1e-3
 
 
-def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False, kind: str = "pose"):
+def _read_rows(path: PathLike, n_cols: int, what: str, with_lines: bool = False, kind: str = "pose") -> Any:
     """Parse a whitespace-separated text file into (N, n_cols) float64, naming the file and line on error
     (with_lines: also the (N,) line numbers; kind: what the file is called in errors, "pose" or "times")."""
     path = Path(path)
@@ -146,7 +147,7 @@ def write_poses(path: PathLike, poses: np.ndarray, times: np.ndarray, fmt: str =
         raise TrajectoryError(f"{path}: pose format {fmt!r} unknown (one of {', '.join(POSE_FORMATS)})")
 
 
-def pair_nearest(queries: np.ndarray, stamps: np.ndarray, max_dt) -> tuple[np.ndarray, np.ndarray]:
+def pair_nearest(queries: np.ndarray, stamps: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
     """For each query time the index of the nearest of the sorted `stamps` (the earlier on a tie) and whether it is
     within max_dt (a bag's images and scans, an estimate's poses and the truth's)."""
     right = np.clip(np.searchsorted(stamps, queries), 0, len(stamps) - 1)

@@ -15,6 +15,7 @@ analytic Jacobians. The endpoints come from trimming with the segment's end rays
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -142,7 +143,8 @@ def _band_foreground(z: np.ndarray, tt: np.ndarray, perp: np.ndarray, cfg: Depth
         return valid & (np.abs(z - zref) <= np.maximum(cfg.depth_jump_min_m, cfg.depth_jump_ratio * zref))
 
 
-def _init_depths(z, tt, fg, cfg: DepthConfig, n_iter: int = 3):
+def _init_depths(z: np.ndarray, tt: np.ndarray, fg: np.ndarray, cfg: DepthConfig, n_iter: int = 3
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust affine fit of inverse depth along the segment -> depth at t=0 (M,), at t=1 (M,), inliers (M,P)."""
     w = fg.astype(float)
     iz = np.where(fg, 1.0 / np.where(fg, z, 1.0), 0.0)
@@ -256,7 +258,8 @@ class _Lines:
         g = (np.swapaxes(G12, 1, 2) @ (S @ R).reshape(M, 12, 1))[..., 0]
         return H, g
 
-    def reprojection(self, KL: np.ndarray, ends_h: np.ndarray, hat_c: np.ndarray, jacobian: bool = False):
+    def reprojection(self, KL: np.ndarray, ends_h: np.ndarray, hat_c: np.ndarray, jacobian: bool = False
+                     ) -> tuple[np.ndarray, Any]:
         """(M,2) px residuals of the segment ends (M,2,3) against the projected lines, and their (M,2,4)
         Jacobian for delta when asked; hat_c (M,3,3): cross-product matrices of the frames' centres c."""
         w1, w2 = self.W[:, 0, 0, None], self.W[:, 1, 0, None]
@@ -278,7 +281,7 @@ class _Lines:
         return r, dr_dm @ dmc
 
 
-def _huber(dist: np.ndarray, wsel: np.ndarray, delta: float, weights: bool = True):
+def _huber(dist: np.ndarray, wsel: np.ndarray, delta: float, weights: bool = True) -> tuple[Any, np.ndarray]:
     """(M,P) distances, (M,P) 0/1 selection -> Huber IRLS weights (M,P) (None unless asked) and costs (M,)."""
     inside = dist <= delta
     rho = np.where(inside, 0.5 * dist * dist, delta * (dist - 0.5 * delta))
@@ -288,7 +291,8 @@ def _huber(dist: np.ndarray, wsel: np.ndarray, delta: float, weights: bool = Tru
     return np.where(inside, wsel, wsel * delta / np.maximum(dist, 1e-12)), cost
 
 
-def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np.ndarray, cfg: DepthConfig):
+def _lm(L0: np.ndarray, pts: np.ndarray, sel: np.ndarray, K: np.ndarray, seg: np.ndarray, cfg: DepthConfig
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched Levenberg-Marquardt from (M,6) camera lines -> (M,6) camera lines, iterations (M,), converged (M,).
 
     Each line is solved in a frame translated to the centroid of its points: the orthonormal parameters of a line

@@ -97,7 +97,9 @@ def point_depths(proj: ProjectedScan, keypoints: np.ndarray, K: np.ndarray, cfg:
     )
 
 
-def _robust_plane(X, Y, Z, du, dv, fg, cfg: DepthConfig):
+def _robust_plane(
+    X: np.ndarray, Y: np.ndarray, Z: np.ndarray, du: np.ndarray, dv: np.ndarray, fg: np.ndarray, cfg: DepthConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reweighted fits on the foreground: inliers within plane_inlier_m, weighted towards the feature pixel.
 
     X, Y, Z: (Q,P) camera coordinates; du, dv: (Q,P) pixel offsets from the feature; fg: (Q,P) foreground.

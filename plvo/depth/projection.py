@@ -173,7 +173,9 @@ def query_patches(proj: ProjectedScan, centers: np.ndarray, half: float) -> tupl
     return query_boxes(proj, np.concatenate([c - half, c + half], axis=1))
 
 
-def to_padded(owner: np.ndarray, idx: np.ndarray, n_queries: int, max_per: int | None = None):
+def to_padded(
+    owner: np.ndarray, idx: np.ndarray, n_queries: int, max_per: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Sorted (K,) owners and (K,) indices -> (index (Q,P) int with -1 padding, count (Q,)); P = max count (capped)."""
     counts = np.bincount(owner, minlength=n_queries).astype(np.int64)
     P = int(counts.max()) if len(counts) and counts.size else 0

@@ -49,7 +49,9 @@ def fit_planes(pts: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return fit_planes_xyz(X, Y, Z, w)
 
 
-def fit_planes_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, w: np.ndarray):
+def fit_planes_xyz(
+    X: np.ndarray, Y: np.ndarray, Z: np.ndarray, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """fit_planes on coordinates given as three contiguous (Q,P) arrays (several times faster than (Q,P,3))."""
     sw = w.sum(axis=1)
     bad = sw <= 0
@@ -72,7 +74,9 @@ def fit_planes_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, w: np.ndarray):
     return n, d, np.maximum(eig, 0.0), c
 
 
-def sym3_smallest(a00, a11, a22, a01, a02, a12) -> tuple[np.ndarray, np.ndarray]:
+def sym3_smallest(
+    a00: np.ndarray, a11: np.ndarray, a22: np.ndarray, a01: np.ndarray, a02: np.ndarray, a12: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric 3x3 matrices by their six (Q,) entries -> eigenvalues ascending (Q,3), unit eigenvector of the
     smallest (Q,3).
 
@@ -126,7 +130,16 @@ def grow_foreground(
     return grow_foreground_xyz(X, Y, Z, labels, rays, max_rms, min_cos, min_spread_ratio)
 
 
-def grow_foreground_xyz(X, Y, Z, labels, rays, max_rms: float, min_cos: float, min_spread_ratio: float = 0.1):
+def grow_foreground_xyz(
+    X: np.ndarray,
+    Y: np.ndarray,
+    Z: np.ndarray,
+    labels: np.ndarray,
+    rays: np.ndarray,
+    max_rms: float,
+    min_cos: float,
+    min_spread_ratio: float = 0.1,
+) -> np.ndarray:
     """grow_foreground on coordinates given as three contiguous (Q,P) arrays."""
     Q = len(X)
     k_sel = np.zeros(Q, dtype=np.int64)

@@ -216,7 +216,9 @@ def detect_orb(image: np.ndarray, cfg: OrbConfig) -> OrbPoints:
     )
 
 
-def _describe_level(img: np.ndarray, xy: np.ndarray, angle: np.ndarray, resp: np.ndarray, cfg: OrbConfig):
+def _describe_level(
+    img: np.ndarray, xy: np.ndarray, angle: np.ndarray, resp: np.ndarray, cfg: OrbConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """rBRIEF of corners (K,2) in one level's pixels, on that level's image -> (xy, angle, response, desc) or None.
 
     One single-level cv2.ORB per level of our pyramid: cv2.ORB's multi-level compute would rebuild and blur its

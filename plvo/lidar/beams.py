@@ -9,10 +9,15 @@ are generated as twins (`plvo synth --lidar`, plvo_synth/twin/lidars.py).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from plvo.errors import PlvoError
 from plvo.lidar.scan import raise_elevation
+
+if TYPE_CHECKING:
+    from plvo.types import Frame
 
 # HDL-64E nominal elevations (deg): 32 lasers from +2 to -8.33 (1/3 deg apart) and 32 from -8.83 to -24.8 (about
 # 1/2 deg apart), as the synthetic town's Velodyne model (plvo_synth.sensors) has them
@@ -52,11 +57,11 @@ def resample_beams(scan: np.ndarray, n_beams: int, elevation_offset_deg: float =
 class BeamResampled:
     """A Dataset whose scans are resampled to n_beams (every other attribute is the wrapped dataset's)."""
 
-    def __init__(self, dataset, n_beams: int) -> None:
+    def __init__(self, dataset: Any, n_beams: int) -> None:
         resample_beams(np.zeros((0, 4), np.float32), n_beams)  # checks n_beams
         self._dataset, self.n_beams = dataset, int(n_beams)
 
-    def __getattr__(self, name: str):
+    def __getattr__(self, name: str) -> Any:
         if name == "_dataset":  # not set yet (unpickling)
             raise AttributeError(name)
         return getattr(self._dataset, name)
@@ -64,7 +69,7 @@ class BeamResampled:
     def __len__(self) -> int:
         return len(self._dataset)
 
-    def __getitem__(self, i: int):
+    def __getitem__(self, i: int) -> Frame:
         from dataclasses import replace
 
         frame = self._dataset[i]

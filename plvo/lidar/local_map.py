@@ -275,7 +275,8 @@ def _residuals(m: tuple[np.ndarray, np.ndarray, np.ndarray], q: np.ndarray, norm
     return np.einsum("ni,ni->n", normals[idx], p - q[idx])
 
 
-def _plane_error(m, q: np.ndarray, normals: np.ndarray, radius: float, subset: np.ndarray) -> float:
+def _plane_error(m: tuple[np.ndarray, np.ndarray, np.ndarray], q: np.ndarray, normals: np.ndarray, radius: float,
+                 subset: np.ndarray) -> float:
     """Mean truncated point-to-plane distance over `subset` (plvo.lidar.registration's e), radius where none."""
     if not np.any(subset):
         return float(radius)
@@ -283,8 +284,8 @@ def _plane_error(m, q: np.ndarray, normals: np.ndarray, radius: float, subset: n
     return float(np.mean(r[subset]))
 
 
-def _gauss_newton(src: np.ndarray, T: np.ndarray, m, q: np.ndarray, normals: np.ndarray, k: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _gauss_newton(src: np.ndarray, T: np.ndarray, m: tuple[np.ndarray, np.ndarray, np.ndarray], q: np.ndarray,
+                  normals: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     """The robust point-to-plane problem at T for source points s (lidar frame), residuals r = n . (T exp(xi) s - q)
     with Tukey weights W (threshold k), sigma^2 their weighted mean square -> (information J^T W J / sigma^2 (6,6),
     the Gauss-Newton step xi (6,) from T). With the normal in the lidar frame m = R^T n, J = [m, s x m] in

@@ -127,7 +127,7 @@ def prepare(scan: np.ndarray, cfg: RegistrationConfig, name: str = "scan") -> Pr
     return PreparedScan(fine, cloud, cfg.voxel_m)
 
 
-def _prepared(scan, cfg: RegistrationConfig, name: str) -> PreparedScan:
+def _prepared(scan: np.ndarray | PreparedScan, cfg: RegistrationConfig, name: str) -> PreparedScan:
     if isinstance(scan, PreparedScan):
         if scan.voxel_m != cfg.voxel_m:
             raise PlvoError(f"registration: {name} was prepared with voxel_m {scan.voxel_m}, config has {cfg.voxel_m}")
@@ -170,7 +170,8 @@ def zeta_from_errors(e_hat: float, e_bar: float, formula: str = "paper") -> floa
     raise PlvoError(f"registration: config field 'zeta_formula' must be 'paper' or 'inverse', got '{formula}'")
 
 
-def _ndt(src, dst, init, cfg: RegistrationConfig) -> tuple[np.ndarray, float]:
+def _ndt(src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, init: np.ndarray, cfg: RegistrationConfig
+         ) -> tuple[np.ndarray, float]:
     """NDT on the source at voxel_m against the target at voxel_m / 2: NDT needs >= 6 target points a voxel, which a
     target downsampled to voxel_m cannot give 1 m voxels (fitness fell to 0.16 on sequence 04)."""
     T = init
@@ -192,7 +193,8 @@ def _ndt(src, dst, init, cfg: RegistrationConfig) -> tuple[np.ndarray, float]:
     return np.asarray(res.transformation), float(res.fitness)
 
 
-def _icp(src, dst, init, cfg: RegistrationConfig, method: str) -> tuple[np.ndarray, float]:
+def _icp(src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, init: np.ndarray, cfg: RegistrationConfig,
+         method: str) -> tuple[np.ndarray, float]:
     crit = _REG.ICPConvergenceCriteria(max_iteration=cfg.max_iterations)
     if method == "gicp":
         res = _REG.registration_generalized_icp(src, dst, cfg.max_correspondence_m, init,
@@ -207,7 +209,8 @@ class _Failed(Exception):
     pass
 
 
-def _run(method: str, src, dst, init, cfg) -> tuple[np.ndarray, float]:
+def _run(method: str, src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, init: np.ndarray,
+         cfg: RegistrationConfig) -> tuple[np.ndarray, float]:
     try:
         T, fitness = _ndt(src, dst, init, cfg) if method == "ndt" else _icp(src, dst, init, cfg, method)
     except (RuntimeError, ValueError) as exc:  # open3d raises RuntimeError on degenerate input
@@ -271,7 +274,8 @@ def _pca_normals(q: np.ndarray, tree: cKDTree, idx: np.ndarray, k: int = 10) -> 
     return vecs[:, :, 0]
 
 
-def _errors(src, dst, T_hat: np.ndarray, T_bar: np.ndarray, radius: float) -> tuple[float, float]:
+def _errors(src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, T_hat: np.ndarray, T_bar: np.ndarray,
+            radius: float) -> tuple[float, float]:
     """-> (e_hat at the tracker's T_hat, e_bar at the registered T_bar) on the same source points."""
     p = np.asarray(src.points)
     if len(p) > _MAX_EVAL_POINTS:

@@ -253,7 +253,8 @@ class LoopCloser:
         """Is keyframe cid more than min_keyframe_gap keyframes older than the keyframe of arrival index at?"""
         return self._index[cid] < at - self.cfg.min_keyframe_gap
 
-    def _verify(self, kf: LoopKeyframe, det: Detection, places: tuple[PlaceQuery, ...]):
+    def _verify(self, kf: LoopKeyframe, det: Detection, places: tuple[PlaceQuery, ...]
+                ) -> tuple[tuple[Verification, ...], LoopEdge | None, tuple[str, ...]]:
         lidar = [(p.kf_id, c) for p in places for c in p.candidates]
         if not det.ready and not lidar:
             return (), None, (det.reason,) if det.reason else ()

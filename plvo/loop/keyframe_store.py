@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -99,6 +99,6 @@ class KeyframeStore:
     def __del__(self) -> None:
         self.close()
 
-    def __getstate__(self):
+    def __getstate__(self) -> NoReturn:
         raise TypeError("a KeyframeStore is the loop closer's own (an open file): it is not shipped between "
                         "processes")

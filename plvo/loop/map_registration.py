@@ -89,7 +89,7 @@ def _cloud(pts: np.ndarray) -> o3d.geometry.PointCloud:
 
 
 def _icp(src: dict[str, o3d.geometry.PointCloud], dst: o3d.geometry.PointCloud, T: np.ndarray,
-         stages=_STAGES) -> np.ndarray:
+         stages: tuple[tuple[float, str, int], ...] = _STAGES) -> np.ndarray:
     for corr, which, iterations in stages:
         est = _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=corr))
         crit = _REG.ICPConvergenceCriteria(relative_fitness=1e-12, relative_rmse=1e-12, max_iteration=iterations)
@@ -138,7 +138,8 @@ def align_maps(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray, cfg: LoopCo
     src = np.asarray(src, np.float64)
     src = src[np.einsum("ij,ij->i", src[:, :2], src[:, :2]) <= cfg.scan_verify_radius_m ** 2]
 
-    def refuse(reason: str, T=T_init, overlap=0.0, error=float("nan"), constraint=0.0, basin=float("nan")):
+    def refuse(reason: str, T: np.ndarray = T_init, overlap: float = 0.0, error: float = float("nan"),
+               constraint: float = 0.0, basin: float = float("nan")) -> MapAlignment:
         return MapAlignment(T, overlap, error, constraint, basin, len(src), reason, time.perf_counter() - t0)
 
     if len(src) < MIN_POINTS or len(dst) < MIN_POINTS:

@@ -209,7 +209,8 @@ class Vocabulary:
         return vocab
 
     @classmethod
-    def _from_lists(cls, node_desc, children, k, depth, info) -> Vocabulary:
+    def _from_lists(cls, node_desc: list[np.ndarray], children: list[list[int]], k: int, depth: int,
+                    info: str) -> Vocabulary:
         n = len(node_desc)
         table = np.full((n, k), -1, np.int32)
         for i, ch in enumerate(children):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Generator
+from typing import TYPE_CHECKING
 
 from plvo.features.worker import FeaturesJob
 from plvo.priority import LOOKAHEAD_NICENESS
@@ -15,6 +16,9 @@ from plvo.runtime.prefetch import prefetched
 from plvo.runtime.workers import OrderedWorker
 from plvo.tracking.frontend import Frontend
 from plvo.types import Frame
+
+if TYPE_CHECKING:
+    from plvo.data.dataset import Dataset
 
 
 class Lookahead:
@@ -25,7 +29,7 @@ class Lookahead:
     def __init__(self, frontend: Frontend | None, features: OrderedWorker | None, timeout_s: float):
         self._frontend, self._features, self._timeout_s = frontend, features, timeout_s
 
-    def frames(self, dataset) -> Generator[Frame, None, None]:
+    def frames(self, dataset: Dataset) -> Generator[Frame, None, None]:
         if self._features is None:
             return prefetched(dataset, prepare=self.prepare, niceness=LOOKAHEAD_NICENESS, timeout_s=self._timeout_s)
         return prefetched(dataset, prepare=self.start, finish=self.finish, niceness=LOOKAHEAD_NICENESS,

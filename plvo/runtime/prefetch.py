@@ -19,18 +19,21 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Generator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from plvo.errors import RunFailed
 from plvo.priority import lower_priority
 from plvo.types import Frame
+
+if TYPE_CHECKING:
+    from plvo.data.dataset import Dataset
 
 _END = object()
 _POLL_S = 0.5
 READ_TIMEOUT_S = 60.0  # one frame's files (a few MB) read in milliseconds; a minute is a path that blocks
 
 
-def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None = None,
+def prefetched(dataset: Dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None = None,
                niceness: int = 0, finish: Callable[[Frame, Any], Frame] | None = None,
                timeout_s: float | None = None) -> Generator[Frame, None, None]:
     """The dataset's frames in order, each loaded (and prepared) while the previous ones are processed; the
@@ -119,7 +122,7 @@ def prefetched(dataset, depth: int = 2, prepare: Callable[[Frame], Any] | None =
         thread.join(timeout=0 if stuck else 5)  # a stuck thread is not waited for
 
 
-def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float | None, dataset,
+def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float | None, dataset: Dataset,
                 position: int, reading: list) -> Any:
     """The reading thread's next item; RunFailed when it takes over timeout_s, when one frame's files take over
     READ_TIMEOUT_S to read (naming them), or when the thread ended without one."""
@@ -142,14 +145,14 @@ def _next_ready(ready: queue.Queue, thread: threading.Thread, timeout_s: float |
                                 f"{waited:.0f} s (a read or the features process is stuck)") from None
 
 
-def _files(dataset, position: int) -> str:
+def _files(dataset: Dataset, position: int) -> str:
     """The files a file-based dataset reads for a frame (KITTI layouts, the folder layout), else what it is."""
     names = [str(files[position]) for files in (getattr(dataset, "_images", None), getattr(dataset, "_scans", None))
              if files is not None and position < len(files)]
     return ", ".join(names) or type(dataset).__name__
 
 
-def _frame_name(dataset, position: int) -> str:
+def _frame_name(dataset: Dataset, position: int) -> str:
     indices = getattr(dataset, "frame_indices", None)
     return str(indices[position]) if indices is not None and position < len(indices) else f"#{position}"
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from plvo.config import SystemConfig
 from plvo.recording import Recorder
 from plvo.results import EDGE_LOOP, StageSteps
 from plvo.runtime.system import System
+
+if TYPE_CHECKING:
+    from plvo.data.dataset import Dataset
 
 
 @dataclass(frozen=True)
@@ -33,7 +37,7 @@ class RunOutput:
     trust: dict = field(default_factory=dict)  # System.trust_summary(): where each frame's pose came from
 
 
-def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
+def run_dataset(dataset: Dataset, config: SystemConfig, recorder: Recorder | None = None,
                 progress: Callable[[int], object] | None = None) -> RunOutput:
     """Run the whole pipeline over a Dataset -> RunOutput with cam0 poses of every frame (KITTI convention).
 
@@ -42,7 +46,7 @@ def run_dataset(dataset, config: SystemConfig, recorder: Recorder | None = None,
     return run_system(System(config, recorder, calib=dataset.calib), dataset, progress)
 
 
-def step_through(system: System, dataset, progress: Callable[[int], object] | None = None,
+def step_through(system: System, dataset: Dataset, progress: Callable[[int], object] | None = None,
                  at: list[int] | None = None) -> None:
     """Step `system` (made for this dataset, not yet stepped) through every frame, each read while the one before
     is tracked, then let its workers finish (the System stays open). When the frames show that the run's config is
@@ -74,7 +78,7 @@ def step_through(system: System, dataset, progress: Callable[[int], object] | No
     system.finish()
 
 
-def run_system(system: System, dataset, progress: Callable[[int], object] | None = None) -> RunOutput:
+def run_system(system: System, dataset: Any, progress: Callable[[int], object] | None = None) -> RunOutput:
     """Step `system` (made for this dataset, not yet stepped) through every frame (step_through), let its workers
     finish, and close it -> RunOutput."""
     try:

@@ -26,7 +26,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Generator, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +49,11 @@ from plvo.tracking.frontend import Frontend, FrontendResult
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
+
+if TYPE_CHECKING:
+    from plvo.config import DepthConfig
+    from plvo.data.dataset import Dataset
+    from plvo.types import DepthPriors, FeatureSet
 
 log = logging.getLogger(__name__)
 
@@ -192,7 +197,7 @@ class System:
         before the stages are built (no calib given to the System) the frame as it is."""
         return frame if self._lookahead is None else self._lookahead.prepare(frame)
 
-    def read_ahead(self, dataset) -> Generator[Frame, None, None]:
+    def read_ahead(self, dataset: Dataset) -> Generator[Frame, None, None]:
         """The dataset's frames as the System is meant to take them: read and prepared ahead
         (plvo.runtime.lookahead)."""
         if self._lookahead is None:  # the stages are built at the first step: prepared from then on
@@ -202,7 +207,7 @@ class System:
 
     # ---- wiring --------------------------------------------------------------------------------------------
     def _build(self, calib: Calibration) -> None:
-        def depth(scan, features, calib_, cfg):
+        def depth(scan: np.ndarray, features: FeatureSet, calib_: Calibration, cfg: DepthConfig) -> DepthPriors:
             # the tracker wants the priors; the viewers also want what the extraction saw (DepthDebug)
             t0 = time.perf_counter()
             out = extract_depth(scan, features, calib_, cfg)

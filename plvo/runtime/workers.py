@@ -40,7 +40,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.reduction import ForkingPickler
 from typing import Any
@@ -155,7 +155,7 @@ _PARENTS_SIGNALS = (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT)
 
 
 @contextlib.contextmanager
-def _terminal_signals_ignored_by_children():
+def _terminal_signals_ignored_by_children() -> Iterator[None]:
     """Within: the terminal's signals ignored, so that a spawned worker starts with them ignored (an ignored
     disposition survives the spawn's exec, and Python keeps it): a Ctrl-C during a worker's imports (a second or
     two) no longer prints a KeyboardInterrupt's traceback from each worker. The parent's own signals are blocked

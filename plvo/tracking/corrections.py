@@ -30,7 +30,7 @@ BACKEND, LOOP, GLOBAL_BA = "back end", "loop", "global BA"
 RELOCALISED = "relocalised"
 
 
-def _none(shape: tuple[int, ...], dtype: type = float):
+def _none(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
     return field(default_factory=lambda: np.zeros(shape, dtype))
 
 

@@ -26,6 +26,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -69,7 +70,7 @@ HELD = "held"  # the image repeats the previous one while the lidar moves: the p
 _NONE = np.zeros(0)  # no PnPL residuals (nothing solved); read-only like every result's arrays
 
 
-def _arr(shape: tuple[int, ...], dtype: type = float):
+def _arr(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
     return field(default_factory=lambda: np.zeros(shape, dtype))
 
 
@@ -381,7 +382,8 @@ class Frontend:
             return None
         return se3.exp(self._offset_s * self._twists[src_index]), se3.exp(self._offset_s * self._twists[last.index])
 
-    def _check(self, frame, feats, prev, base, T, velocity, doubted: bool, timings):
+    def _check(self, frame: Frame, feats: FeatureSet, prev: _FrameState, base: np.ndarray, T: np.ndarray,
+               velocity: np.ndarray, doubted: bool, timings: dict[str, float]) -> Any:
         """The camera's pose T checked against the lidar: over the last frame's interval when the estimate is in
         doubt, else (at a keyframe) since the newest keyframe. None: they agree (or the lidar cannot judge, or only
         the rotation disagrees); the camera's solution matched again from the lidar's motion (`_seeded`); or the
@@ -445,7 +447,9 @@ class Frontend:
                          f"(+- {est.sigma_s:.3f}) {what} the images (from the rotations of {est.n_intervals} "
                          f"intervals); {use}")
 
-    def _seeded(self, prev, feats, T_src, lidar: LidarMotion, timings):
+    def _seeded(self, prev: _FrameState, feats: FeatureSet, T_src: np.ndarray, lidar: LidarMotion,
+                timings: dict[str, float]
+                ) -> tuple[PnPLResult, Correspondences, np.ndarray, np.ndarray, np.ndarray] | None:
         """The camera's pose matched and solved again from the lidar's motion (the pose of the interval's start
         T_src times it): (solution, correspondences, T, point inliers, line inliers) when it agrees with the
         lidar's, else None."""
@@ -460,8 +464,8 @@ class Frontend:
         timings["crosscheck"] = timings.get("crosscheck", 0.0) + time.perf_counter() - t
         return found
 
-    def _overrule(self, frame, feats, base, T_src, lidar: LidarMotion, why: str, timings, corr=None
-                  ) -> FrontendResult:
+    def _overrule(self, frame: Frame, feats: FeatureSet, base: np.ndarray, T_src: np.ndarray, lidar: LidarMotion,
+                  why: str, timings: dict[str, float], corr: Correspondences | None = None) -> FrontendResult:
         """The lidar's pose for this frame (the camera disagreed and could not be matched again from it), with
         landmarks made anew from the lidar's depth, as after a tracking loss."""
         T = T_src @ lidar.T_camprev_camcur
@@ -473,7 +477,8 @@ class Frontend:
         res = self._initialise(frame, feats, T, OVERRULED, kfp.OVERRULED, msg, timings, corr)
         return dataclasses.replace(res, source=LIDAR)
 
-    def _hold(self, frame, feats, base, lidar: LidarMotion, timings) -> FrontendResult:
+    def _hold(self, frame: Frame, feats: FeatureSet, base: np.ndarray, lidar: LidarMotion,
+              timings: dict[str, float]) -> FrontendResult:
         """A repeated image while the lidar moves (a frozen camera): the lidar's pose, no keyframe, and the next
         image tracked against the last real one, predicted from here."""
         T = base @ lidar.T_camprev_camcur
@@ -584,7 +589,7 @@ class Frontend:
         return corr.with_lines(cand[rows], segs, ends[rows], feats.segments[segs].astype(float).reshape(-1, 4))
 
     def _rescue(self, prev: _FrameState, feats: FeatureSet, T_pred: np.ndarray, corr: Correspondences,
-                timings: dict[str, float]):
+                timings: dict[str, float]) -> tuple[PnPLResult, Correspondences]:
         """Frame-to-frame PnPL failed. Search the recent keyframes' landmarks around their predicted projections
         in a wider window, and, as the prediction itself is suspect (a turn that begins or ends), match the
         previous frame again without any prediction and let RANSAC find the pose; keep the better."""
@@ -767,8 +772,10 @@ class Frontend:
         return len(j)
 
     # ---- result ------------------------------------------------------------------------------------------
-    def _result(self, frame, state, status, msg, reason, n_pm, n_lm, corr, inliers, n_new, keyframe, timings,
-                pnpl_residuals=(_NONE, _NONE)):
+    def _result(self, frame: Frame, state: _FrameState, status: str, msg: str, reason: str, n_pm: int, n_lm: int,
+                corr: Correspondences, inliers: tuple[np.ndarray, np.ndarray] | None, n_new: tuple[int, int],
+                keyframe: KeyframeInfo | None, timings: dict[str, float],
+                pnpl_residuals: tuple[np.ndarray, np.ndarray] = (_NONE, _NONE)) -> FrontendResult:
         if inliers is None or status == REINITIALISED:
             inliers = (np.zeros(corr.n_points, bool), np.zeros(corr.n_lines, bool))
         p_in, l_in = inliers
@@ -826,7 +833,8 @@ def _yaw(angle: float) -> np.ndarray:
     return T
 
 
-def _tracked(prev_landmark: np.ndarray, matches: Matches, alive) -> tuple[np.ndarray, np.ndarray]:
+def _tracked(prev_landmark: np.ndarray, matches: Matches, alive: Callable[[np.ndarray], np.ndarray]
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Matches whose previous feature is tied to a live landmark -> (landmark ids, current feature indices)."""
     if not len(matches):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)

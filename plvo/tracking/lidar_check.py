@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
@@ -29,6 +30,9 @@ from scipy.spatial import cKDTree
 
 from plvo.config import CrossCheckConfig
 from plvo.geometry import se3
+
+if TYPE_CHECKING:
+    import logging
 
 _REG = o3d.pipelines.registration
 
@@ -97,7 +101,8 @@ class LidarOdometer:
             self._cache[index] = cloud
         return cloud
 
-    def _icp(self, a, b, init: np.ndarray, radius: float):
+    def _icp(self, a: o3d.geometry.PointCloud, b: o3d.geometry.PointCloud, init: np.ndarray, radius: float
+             ) -> o3d.pipelines.registration.RegistrationResult:
         return _REG.registration_icp(a, b, radius, init, _REG.TransformationEstimationPointToPlane(
             _REG.TukeyLoss(k=radius / 3 if radius > self.cfg.voxel_m else radius / 2)), _CONVERGED)
 
@@ -192,7 +197,7 @@ class CheckLog:
     """The run's cross-check findings: each frame's source, and episodes (consecutive frames of one kind), each
     warned once, as one line naming its frames, when it ends."""
 
-    def __init__(self, logger):
+    def __init__(self, logger: logging.Logger):
         self._log = logger
         self.by_source = {s: 0 for s in SOURCES}
         self.counts: dict[str, int] = {}

@@ -189,7 +189,8 @@ class LandmarkMap:
         self._add_obs(self._lines, self._lobs, ids, kf_id, segment_idx, np.asarray(segments, float).reshape(-1, 4),
                       prior)
 
-    def _add_obs(self, store: LandmarkTable, obs: Columns, ids, kf_id, feature_idx, meas, prior=None) -> None:
+    def _add_obs(self, store: LandmarkTable, obs: Columns, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray,
+                 meas: np.ndarray, prior: np.ndarray | None = None) -> None:
         rows, found = store.rows(ids)
         k = int(found.sum())
         if k == 0:
@@ -241,7 +242,7 @@ class LandmarkMap:
         return self._observations(self._lines, self._lobs, ids)
 
     @staticmethod
-    def _observations(store: LandmarkTable, obs: Columns, ids) -> Observations:
+    def _observations(store: LandmarkTable, obs: Columns, ids: np.ndarray | None) -> Observations:
         lm = obs["landmark"]
         keep = store.live_rows(lm)[1]
         if ids is not None:
@@ -318,8 +319,9 @@ class LandmarkMap:
         """Bytes the map's arrays hold (landmarks, observations, keyframes), capacity included."""
         return sum(c.nbytes() for c in (self._pts, self._lines, self._pobs, self._lobs, self._kfs))
 
-    def apply_update(self, point_ids=None, point_positions=None, line_ids=None, line_endpoints=None,
-                     keyframe_ids=None, keyframe_T_world_cam=None) -> int:
+    def apply_update(self, point_ids: np.ndarray | None = None, point_positions: np.ndarray | None = None,
+                     line_ids: np.ndarray | None = None, line_endpoints: np.ndarray | None = None,
+                     keyframe_ids: np.ndarray | None = None, keyframe_T_world_cam: np.ndarray | None = None) -> int:
         """The write of a correction: (k,) ids with (k,3) positions, (l,) ids with (l,2,3) endpoints,
         (f,) keyframe ids with (f,4,4) poses, all world. Removed landmarks are skipped. Returns the new version."""
         if point_ids is not None and len(point_ids):
@@ -404,7 +406,8 @@ class LandmarkMap:
             out.update(line_ids=lns[0], lines=lns[1], ln_kf=lns[2], ln_idx=lns[3], ln_seg=lns[4], ln_prior=lns[5])
         return WindowData(**out)
 
-    def _window_obs(self, store: LandmarkTable, obs: Columns, column: str, kf_ids: np.ndarray):
+    def _window_obs(self, store: LandmarkTable, obs: Columns, column: str, kf_ids: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         # A keyframe's observations are recorded from when it is made on (the triangulation ablation adds some to
         # the keyframe before it then): the window's all lie after its first keyframe's start.
         start = int(self._obs_start[obs is self._lobs][int(kf_ids.min())]) if len(kf_ids) else obs.n

@@ -114,7 +114,8 @@ def line_residuals(K: np.ndarray, T_world_cam: np.ndarray, lines_world: np.ndarr
     return err
 
 
-def _valid_inputs(pts_world, uv, lines_world, segments) -> tuple[np.ndarray, np.ndarray]:
+def _valid_inputs(pts_world: np.ndarray, uv: np.ndarray, lines_world: np.ndarray,
+                  segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pv = np.isfinite(pts_world).all(axis=1) & np.isfinite(uv).all(axis=1)
     lv = np.isfinite(lines_world).reshape(len(lines_world), 6).all(axis=1) & np.isfinite(segments).all(axis=1)
     if len(lines_world):
@@ -124,7 +125,7 @@ def _valid_inputs(pts_world, uv, lines_world, segments) -> tuple[np.ndarray, np.
     return pv, lv
 
 
-def _check_shapes(pts_world, uv, lines_world, segments) -> None:
+def _check_shapes(pts_world: np.ndarray, uv: np.ndarray, lines_world: np.ndarray, segments: np.ndarray) -> None:
     if pts_world.shape != (len(uv), 3) or uv.shape != (len(pts_world), 2):
         raise ValueError(f"solve_pnpl: pts_world {pts_world.shape} and uv {uv.shape} must be (N,3) and (N,2)")
     if lines_world.shape != (len(segments), 2, 3) or segments.shape != (len(lines_world), 4):
@@ -133,7 +134,8 @@ def _check_shapes(pts_world, uv, lines_world, segments) -> None:
         )
 
 
-def _ransac(K, P, uv, L, S, init, cfg: TrackingConfig):
+def _ransac(K: np.ndarray, P: np.ndarray, uv: np.ndarray, L: np.ndarray, S: np.ndarray, init: np.ndarray | None,
+            cfg: TrackingConfig) -> tuple[np.ndarray, int]:
     """Run poselib's RANSAC on the valid subset; returns (T_world_cam, n_iterations)."""
     ransac_opt = {
         "max_reproj_error": float(cfg.ransac_reproj_px),
@@ -155,7 +157,8 @@ def _ransac(K, P, uv, L, S, init, cfg: TrackingConfig):
     return _from_poselib(pose), int(info["iterations"])
 
 
-def _refine(K, T, P, uv, L, S, cfg: TrackingConfig) -> np.ndarray:
+def _refine(K: np.ndarray, T: np.ndarray, P: np.ndarray, uv: np.ndarray, L: np.ndarray, S: np.ndarray,
+            cfg: TrackingConfig) -> np.ndarray:
     """Non-linear refinement of T_world_cam on the given (inlier) correspondences."""
     bundle_opt = {"loss_type": "HUBER", "loss_scale": float(cfg.outlier_reproj_px), "max_iterations": 50}
     pose, _ = poselib.refine_absolute_pose_pnpl(
@@ -170,7 +173,7 @@ def snap_pose(T: np.ndarray) -> np.ndarray:
     return se3.exp(np.round(se3.log(T) / _SNAP) * _SNAP)
 
 
-def _failure(N, M, init, message) -> PnPLResult:
+def _failure(N: int, M: int, init: np.ndarray | None, message: str) -> PnPLResult:
     T = np.eye(4) if init is None else np.array(init, dtype=float)
     return PnPLResult(T, np.zeros(N, bool), np.zeros(M, bool), 0, False, message,
                       np.full(N, np.inf), np.full(M, np.inf))
@@ -255,7 +258,8 @@ def refine_pose(K: np.ndarray, T_world_cam: np.ndarray, pts_world: np.ndarray, u
     return T, point_residuals(K, T, P, U) < thr, lin
 
 
-def _refine_on_inliers(K, T, P, U, L, S, cfg: TrackingConfig) -> tuple[np.ndarray, int]:
+def _refine_on_inliers(K: np.ndarray, T: np.ndarray, P: np.ndarray, U: np.ndarray, L: np.ndarray, S: np.ndarray,
+                       cfg: TrackingConfig) -> tuple[np.ndarray, int]:
     """Refine T on the matches within cfg.outlier_reproj_px, recheck them, once more; -> (T, inlier count)."""
     thr = float(cfg.outlier_reproj_px)
     n = 0
