@@ -16,7 +16,7 @@ import pytest
 
 from plvo.config import SystemConfig
 from plvo.geometry import se3
-from plvo.tracking.frontend import Frontend
+from plvo.tracking.frontend import Frontend, Stages
 from plvo.tracking.keyframes import closest_points_on_lines
 from plvo.types import DEPTH_OK, DEPTH_TOO_FEW_POINTS, Calibration, DepthPriors, FeatureSet, Frame, Matches
 
@@ -145,7 +145,7 @@ class World:
 
     def stages(self):
         self.pred_err: list[np.ndarray] = []
-        return (self.extract, self.match_points, self.match_lines, self.depth)
+        return Stages(self.extract, self.match_points, self.match_lines, self.depth)
 
 
 _HASH = np.random.default_rng(99).integers(0, 256, (20000, 23), dtype=np.uint8)

@@ -45,7 +45,7 @@ from plvo.runtime.scheduler import Lags, Scheduler, drop_unreachable
 from plvo.runtime.timing import StageClock, timing_summary
 from plvo.runtime.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
 from plvo.runtime.workers import START_TIMEOUT_S, OrderedWorker, libraries_single_threaded
-from plvo.tracking.frontend import Frontend, FrontendResult
+from plvo.tracking.frontend import Frontend, FrontendResult, Stages
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
 from plvo.types import Calibration, Frame
@@ -216,8 +216,8 @@ class System:
             return out.priors
 
         self._calib = calib
-        frontend = self._frontend = Frontend(calib, self.config, stages=(extract_features, match_points, match_lines,
-                                                                          depth))
+        frontend = self._frontend = Frontend(calib, self.config,
+                                             stages=Stages(extract_features, match_points, match_lines, depth))
         b, lags = self.config.backend, Lags.of(self.config)
         mode = b.executor if b.concurrent else "inline"
         graph = GraphView(frontend.map)

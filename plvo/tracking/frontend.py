@@ -26,7 +26,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -134,12 +134,18 @@ class _FrameState:
     kf_track: np.ndarray  # (N,) keypoint index in the last keyframe this keypoint was tracked from, -1 none
 
 
-# (extract_features, match_points, match_lines, extract_depth_priors) or stand-ins with their signatures
-Stages = tuple[Callable[..., FeatureSet], Callable[..., Matches], Callable[..., Matches], Callable[..., DepthPriors]]
+class Stages(NamedTuple):
+    """The tracker's stages: plvo's (`_default_stages`), or stand-ins with their signatures (a test's synthetic
+    world, the System's depth stage that also keeps what the extraction saw for the viewers)."""
+
+    extract: Callable[..., FeatureSet]  # as plvo.features.extract.extract_features
+    match_points: Callable[..., Matches]  # as plvo.features.matching.match_points
+    match_lines: Callable[..., Matches]  # as plvo.features.matching.match_lines
+    depth: Callable[..., DepthPriors]  # as plvo.depth.extract.extract_depth_priors
 
 
 def _default_stages() -> Stages:
-    return extract_features, match_points, match_lines, extract_depth_priors
+    return Stages(extract_features, match_points, match_lines, extract_depth_priors)
 
 
 class Frontend:
@@ -147,14 +153,13 @@ class Frontend:
 
     def __init__(self, calib: Calibration, config: SystemConfig, landmark_map: LandmarkMap | None = None,
                  T_world_cam_init: np.ndarray | None = None, stages: Stages | None = None):
-        """stages: (extract_features, match_points, match_lines, extract_depth_priors), defaults to plvo's."""
+        """stages: the feature extraction, point and line matching and depth priors (Stages), defaults to plvo's."""
         self.calib = calib
         self.cfg = config
         self.K = np.asarray(calib.K, dtype=float)
         self.map = landmark_map if landmark_map is not None else LandmarkMap()
         self.policy = KeyframePolicy(config.tracking)
-        self._extract, self._match_points, self._match_lines, self._depth = (
-            stages if stages is not None else _default_stages())
+        self._extract, self._match_points, self._match_lines, self._depth = stages or _default_stages()
         self._T_init = np.array(calib.T_cam0_cam if T_world_cam_init is None else T_world_cam_init, dtype=float)
         self._T_cam_cam0 = se3.inv(np.asarray(calib.T_cam0_cam, dtype=float))
         self._prev: _FrameState | None = None
@@ -341,9 +346,10 @@ class Frontend:
                f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers"
                + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
-        res = self._result(frame, state, TRACKED, msg, decision.reason if keyframe else "", len(pm), len(lm),
-                           corr, (p_in, l_in), n_new, keyframe, timings,
-                           (sol.point_residuals[sol.point_inliers], sol.line_residuals[sol.line_inliers]))
+        res = self._result(frame, state, TRACKED, msg, corr, timings, reason=decision.reason if keyframe else "",
+                           n_pm=len(pm), n_lm=len(lm), inliers=(p_in, l_in), n_new=n_new, keyframe=keyframe,
+                           pnpl_residuals=(sol.point_residuals[sol.point_inliers],
+                                           sol.line_residuals[sol.line_inliers]))
         return dataclasses.replace(res, source=source)
 
     # ---- the camera checked against the lidar ---------------------------------------------------------------
@@ -489,7 +495,7 @@ class Frontend:
                             np.full(feats.n_points, -1, np.int64))
         msg = f"frame {frame.index}: the image repeats the previous one while the lidar moves: pose from the lidar"
         corr = self._correspondences(state, feats, _no_matches(), _no_matches())
-        res = self._result(frame, state, HELD, msg, "", 0, 0, corr, None, (0, 0), None, timings)
+        res = self._result(frame, state, HELD, msg, corr, timings)
         return dataclasses.replace(res, source=LIDAR)
 
     # ---- matching and correspondences --------------------------------------------------------------------
@@ -668,7 +674,7 @@ class Frontend:
         self._prev = state
         if corr is None:
             corr = self._correspondences(state, feats, _no_matches(), _no_matches())
-        return self._result(frame, state, status, msg, reason, 0, 0, corr, None, n_new, keyframe, timings)
+        return self._result(frame, state, status, msg, corr, timings, reason=reason, n_new=n_new, keyframe=keyframe)
 
     def _make_keyframe(self, frame: Frame, state: _FrameState, reason: str, from_lidar: bool
                        ) -> tuple[KeyframeInfo, tuple[int, int]]:
@@ -772,10 +778,13 @@ class Frontend:
         return len(j)
 
     # ---- result ------------------------------------------------------------------------------------------
-    def _result(self, frame: Frame, state: _FrameState, status: str, msg: str, reason: str, n_pm: int, n_lm: int,
-                corr: Correspondences, inliers: tuple[np.ndarray, np.ndarray] | None, n_new: tuple[int, int],
-                keyframe: KeyframeInfo | None, timings: dict[str, float],
+    def _result(self, frame: Frame, state: _FrameState, status: str, msg: str, corr: Correspondences,
+                timings: dict[str, float], *, reason: str = "", n_pm: int = 0, n_lm: int = 0,
+                inliers: tuple[np.ndarray, np.ndarray] | None = None, n_new: tuple[int, int] = (0, 0),
+                keyframe: KeyframeInfo | None = None,
                 pnpl_residuals: tuple[np.ndarray, np.ndarray] = (_NONE, _NONE)) -> FrontendResult:
+        """The frame's FrontendResult: what it was tracked against (corr), and, where they apply, the keyframe
+        made (its reason, the landmarks it added), the frame-to-frame matches, the solver's inliers and residuals."""
         if inliers is None or status == REINITIALISED:
             inliers = (np.zeros(corr.n_points, bool), np.zeros(corr.n_lines, bool))
         p_in, l_in = inliers
