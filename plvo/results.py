@@ -11,14 +11,18 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import IntEnum
 from typing import Any
 
 import numpy as np
 
-# GraphResult.edge_kind values
-EDGE_ODOMETRY = 0  # consecutive keyframes: VO relative pose / lidar registration
-EDGE_COVISIBILITY = 1  # keyframes sharing landmarks in the local window
-EDGE_LOOP = 2  # accepted loop closure
+
+class EdgeKind(IntEnum):
+    """What ties two keyframes in the graph (GraphEdge.kind; GraphResult.edge_kind holds the values as ints)."""
+
+    ODOMETRY = 0  # consecutive keyframes: VO relative pose / lidar registration
+    COVISIBILITY = 1  # keyframes sharing landmarks in the local window
+    LOOP = 2  # accepted loop closure
 
 
 def _empty(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
@@ -65,7 +69,7 @@ class GraphResult:
     """The keyframe graph after a back-end (or loop) optimisation.
 
     keyframe_ids: (K,) int; T_world_cam: (K,4,4) their optimised poses. edges: (E,2) int indices into keyframe_ids;
-    edge_kind: (E,) int (EDGE_*); zeta: (E,) alignment-quality information weight of each edge (>= 0, larger is more
+    edge_kind: (E,) int (EdgeKind); zeta: (E,) alignment-quality information weight of each edge (>= 0, larger is more
     trusted; NaN where the edge has none). scale: scale correction applied at this step (1.0 when none).
     """
 

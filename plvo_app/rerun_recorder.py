@@ -36,8 +36,7 @@ from plvo.geometry.camera import backproject, in_image, project
 from plvo.geometry.se3 import transform_points
 from plvo.recording import RunInfo
 from plvo.results import (
-    EDGE_COVISIBILITY,
-    EDGE_LOOP,
+    EdgeKind,
     GraphResult,
     KeyframeResult,
     LoopResult,
@@ -749,7 +748,7 @@ class RerunRecorder:
             ids = np.asarray(g.keyframe_ids)
             recent = ids[np.asarray(g.edges)].min(axis=1) > ids.max() - self.opt.summary_every_keyframes
             kind = np.asarray(g.edge_kind)
-            keep = recent & (kind != EDGE_COVISIBILITY)
+            keep = recent & (kind != EdgeKind.COVISIBILITY)
             self.rec.log(E["graph_recent"], rr.LineStrips3D(
                 poses[:, :3, 3][np.asarray(g.edges)[keep]].astype(np.float32),
                 colors=zeta_colors(np.asarray(g.zeta)[keep], kind[keep]), radii=rr.Radius.ui_points(2.5)))
@@ -768,9 +767,9 @@ class RerunRecorder:
             else:  # the odometry edges (at most graph_summary_edges, by stride) with their zeta and every loop;
                 # the covisibility edges and the rest with the detail
                 summary = np.zeros(len(kind), bool)
-                odometry = np.flatnonzero(kind != EDGE_COVISIBILITY)
+                odometry = np.flatnonzero(kind != EdgeKind.COVISIBILITY)
                 summary[odometry[thin(len(odometry), self.opt.graph_summary_edges)]] = True
-                summary |= kind == EDGE_LOOP
+                summary |= kind == EdgeKind.LOOP
                 self.rec.log(E["graph"], strips(summary))
                 if not summary.all():
                     self._policy.defer(self._at, (E["graph"], _Lazy(strips, everything)))

@@ -16,7 +16,7 @@ import numpy as np
 
 from plvo.geometry.se3 import inv, transform_points
 from plvo.recording import RunInfo
-from plvo.results import EDGE_LOOP
+from plvo.results import EdgeKind
 from plvo_app.guards import deferred_signals
 
 GREY, GREEN, RED, ORANGE, CYAN, MAGENTA = (170, 170, 170), (40, 220, 60), (230, 50, 50), (255, 150, 20), \
@@ -77,7 +77,7 @@ def zeta_colors(zeta: np.ndarray, kind: np.ndarray) -> np.ndarray:
     t = np.clip(np.nan_to_num(z, nan=0.0) / ZETA_FULL, 0, 1)
     colors = np.stack([255 * np.clip(2 - 2 * t, 0, 1), 220 * np.clip(2 * t, 0, 1), 40 + 0 * t], 1).astype(np.uint8)
     colors[np.isnan(z)] = GREY
-    colors[np.asarray(kind) == EDGE_LOOP] = MAGENTA
+    colors[np.asarray(kind) == EdgeKind.LOOP] = MAGENTA
     return colors
 
 

@@ -9,16 +9,7 @@ import numpy as np
 from plvo.depth.extract import DepthDebug
 from plvo.geometry.se3 import exp
 from plvo.recording import RunInfo
-from plvo.results import (
-    EDGE_LOOP,
-    EDGE_ODOMETRY,
-    GraphResult,
-    KeyframeResult,
-    LoopResult,
-    MapResult,
-    MetricsResult,
-    TimingResult,
-)
+from plvo.results import EdgeKind, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
 from plvo.tracking.frontend import FrontendResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame
 
@@ -124,7 +115,7 @@ def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1, start: boo
             poses = np.array([pose(f) for f in kfs[:k + 1]])
             edges = np.array([[j, j + 1] for j in range(k)], int).reshape(-1, 2)
             pts = rng.uniform(-20, 20, (200 * (k + 1), 3))
-            pending += [(i, GraphResult(i, np.arange(k + 1), poses, edges, np.full(len(edges), EDGE_ODOMETRY),
+            pending += [(i, GraphResult(i, np.arange(k + 1), poses, edges, np.full(len(edges), EdgeKind.ODOMETRY),
                                         np.linspace(0, 0.2, len(edges)), 1.0)),
                         (i, MapResult(i, pts, pts[:30].reshape(-1, 2, 3))),
                         (i, MetricsResult(i, {"scale_factor": 1.0, "backend_bundle_adjustment_ms": 5.0,
@@ -139,7 +130,7 @@ def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1, start: boo
         recorder.on_stage(f, r)
     recorder.on_stage(kfs[-1], LoopResult(kfs[-1], k, 0, True, 0.5, 40, np.eye(4), "verified"))
     recorder.on_stage(kfs[-1], GraphResult(kfs[-1], np.arange(k + 1), np.array([pose(f) for f in kfs]),
-                                           np.array([[k, 0]]), np.array([EDGE_LOOP]), np.array([np.nan])))
+                                           np.array([[k, 0]]), np.array([EdgeKind.LOOP]), np.array([np.nan])))
     assert last >= kfs[-1]
 
 

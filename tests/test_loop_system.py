@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from plvo.config import BackendConfig, LoopConfig, SystemConfig
-from plvo.results import EDGE_LOOP, GraphResult, KeyframeResult, LoopResult, TrackingResult
+from plvo.results import EdgeKind, GraphResult, KeyframeResult, LoopResult, TrackingResult
 from plvo_eval.revisits import loop_edge_errors, revisits
 
 pytestmark = pytest.mark.slow
@@ -92,7 +92,7 @@ def test_loop_is_closed_and_end_point_error_falls(run):
     first = accepted[0]
     graphs = [g for g in rec.graphs if g.frame_index == first.frame_index]
     # back end, the loop correction, the global bundle adjustment after it
-    assert len(graphs) == 3 and graphs[1].edge_kind.max() == EDGE_LOOP
+    assert len(graphs) == 3 and graphs[1].edge_kind.max() == EdgeKind.LOOP
     fq = rec.kf_frame[first.query_keyframe]
     before, graph, adjusted = (float(np.linalg.norm(g.T_world_cam[first.query_keyframe, :3, 3] - gt[fq, :3, 3]))
                                for g in graphs)

@@ -40,7 +40,7 @@ from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
 from plvo.geometry import se3
 from plvo.lidar.local_map import LocalMap
 from plvo.lidar.registration import PreparedScan, RegistrationResult, SparseScan, align, prepare
-from plvo.results import EDGE_ODOMETRY
+from plvo.results import EdgeKind
 from plvo.tracking.corrections import BACKEND, GraphEdge, MapCorrection, WindowData
 from plvo.types import Calibration
 
@@ -301,7 +301,7 @@ def residual_weight(e_bar: float, b: BackendConfig, power: float | None = None) 
 
 def registration_edge(i: int, j: int, T_i_j: np.ndarray, zeta: float, e_bar: float, b: BackendConfig) -> GraphEdge:
     """The odometry edge of a registration, its translation and rotation weighed by the alignment's residual."""
-    return GraphEdge(i, j, T_i_j, zeta, EDGE_ODOMETRY, residual_weight(e_bar, b),
+    return GraphEdge(i, j, T_i_j, zeta, EdgeKind.ODOMETRY, residual_weight(e_bar, b),
                      residual_weight(e_bar, b, b.relative_rotation_residual_power))
 
 
@@ -321,7 +321,7 @@ def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[Gr
     if len(w.line_ids):
         args.update(lines=w.lines, ln_kf=w.ln_kf, ln_idx=w.ln_idx, ln_seg=w.ln_seg, ln_prior=w.ln_prior)
     row = {int(k): r for r, k in enumerate(w.kf_ids)}
-    edges = [e for e in (*w.edges, *new_edges) if e.kind == EDGE_ODOMETRY and e.i in row and e.j in row]
+    edges = [e for e in (*w.edges, *new_edges) if e.kind == EdgeKind.ODOMETRY and e.i in row and e.j in row]
     if edges:
         args.update(
             rel_ij=np.array([[row[e.i], row[e.j]] for e in edges], int),

@@ -37,7 +37,7 @@ from plvo.config import SystemConfig
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import SOURCES, LoopKeyframe
-from plvo.results import EDGE_LOOP, EDGE_ODOMETRY, LoopResult, MetricsResult
+from plvo.results import EdgeKind, LoopResult, MetricsResult
 from plvo.tracking.corrections import GLOBAL_BA, LOOP, GlobalData, GraphEdge, MapCorrection, corrected_poses
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import Observations
@@ -132,7 +132,7 @@ class LoopCore:
             e = outcome.accepted
             correction = MapCorrection(LOOP, np.asarray(outcome.kf_ids, np.int64), outcome.poses_before,
                                        outcome.poses_after,
-                                       edges=(GraphEdge(e.match_id, e.query_id, e.T_match_query, 1.0, EDGE_LOOP),))
+                                       edges=(GraphEdge(e.match_id, e.query_id, e.T_match_query, 1.0, EdgeKind.LOOP),))
             self._made.append(correction)
         corrected = correction is not None
         timings = {"loop_bow": 1e-3 * outcome.bow_ms, "loop_query": 1e-3 * outcome.query_ms,
@@ -190,13 +190,14 @@ class LoopCore:
         odometry, _ = self.closer.pose_graph_edges()
         row = {int(k): n for n, k in enumerate(ids)}
         weak = global_ba.pose_graph_zeta(self.cfg.loop, self.cfg.backend)
-        odometry_edges = [e for e in graph if e.kind == EDGE_ODOMETRY and e.i in row and e.j in row and e.zeta > 0]
+        odometry_edges = [e for e in graph if e.kind == EdgeKind.ODOMETRY and e.i in row and e.j in row and e.zeta > 0]
         registered = [(row[e.i], row[e.j], e.T_i_j, e.information) for e in odometry_edges]
         have = {(i, j) for i, j, _, _ in registered}
         closer_ids = self.closer.poses()[0]
         fallback = [(row[int(closer_ids[i])], row[int(closer_ids[j])], T, weak) for i, j, T in odometry
                     if int(closer_ids[i]) in row and int(closer_ids[j]) in row]
-        loops = [(row[e.i], row[e.j], e.T_i_j, 1.0) for e in graph if e.kind == EDGE_LOOP and e.i in row and e.j in row]
+        loops = [(row[e.i], row[e.j], e.T_i_j, 1.0) for e in graph
+                 if e.kind == EdgeKind.LOOP and e.i in row and e.j in row]
         rest = [e for e in fallback if (e[0], e[1]) not in have] + loops
         ratio = np.r_[[e.rotation_ratio for e in odometry_edges], np.ones(len(rest))]
         return registered + rest, ratio

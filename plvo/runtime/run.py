@@ -12,7 +12,7 @@ import numpy as np
 
 from plvo.config import SystemConfig
 from plvo.recording import Recorder
-from plvo.results import EDGE_LOOP, StageSteps
+from plvo.results import EdgeKind, StageSteps
 from plvo.runtime.system import System
 
 if TYPE_CHECKING:
@@ -89,7 +89,7 @@ def run_system(system: System, dataset: Any, progress: Callable[[int], object] |
         system.close()
     m = system.map
     kf_frames = () if m is None else tuple(m.keyframe_frame(k) for k in range(m.n_keyframes))
-    loops = () if m is None else tuple((e.i, e.j, e.T_i_j) for e in m.edges if e.kind == EDGE_LOOP)
+    loops = () if m is None else tuple((e.i, e.j, e.T_i_j) for e in m.edges if e.kind == EdgeKind.LOOP)
     return RunOutput(tuple(dataset.frame_indices), poses, dict(system.timings), m.n_keyframes if m is not None else 0,
                      system.n_lost, finished_at, tuple(system.record.stage_steps), kf_frames, loops,
                      system.trust_summary())

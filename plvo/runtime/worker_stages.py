@@ -18,7 +18,7 @@ import numpy as np
 
 from plvo.allocator import release_free_memory
 from plvo.config import SystemConfig
-from plvo.results import EDGE_LOOP, CorrectionEvent, GraphResult, MapResult, MetricsResult, StageSteps
+from plvo.results import CorrectionEvent, EdgeKind, GraphResult, MapResult, MetricsResult, StageSteps
 from plvo.runtime.scheduler import Channel, Lags, Scheduler
 from plvo.runtime.workers import OrderedWorker
 from plvo.tracking.corrections import GLOBAL_BA, LOOP, MapCorrection
@@ -73,7 +73,7 @@ class GraphView:
         if new:
             pairs = np.r_[pairs, np.array([(e.i, e.j) for e in new], int).reshape(-1, 2)]
             kinds = np.r_[kinds, np.array([e.kind for e in new], int)]
-            zeta = np.r_[zeta, np.array([np.nan if e.kind == EDGE_LOOP else e.zeta for e in new], float)]
+            zeta = np.r_[zeta, np.array([np.nan if e.kind == EdgeKind.LOOP else e.zeta for e in new], float)]
             self._rows = (pairs, kinds, zeta)
         return GraphResult(frame_index, np.arange(len(poses)), poses, pairs, kinds, zeta, scale)
 

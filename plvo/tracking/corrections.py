@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.geometry import se3
+from plvo.results import EdgeKind
 
 BACKEND, LOOP, GLOBAL_BA = "back end", "loop", "global BA"
 # the newest keyframe solved again after a back-end result it was tracked without (Frontend.relocalise_keyframe)
@@ -37,15 +38,15 @@ def _none(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
 @dataclass(frozen=True)
 class GraphEdge:
     """A relative-pose constraint between keyframes i < j: T_i_j (4,4) maps camera j into camera i; zeta its
-    information weight (0: unusable); kind plvo.results.EDGE_ODOMETRY (a registration) or EDGE_LOOP; weight and
-    rotation_weight further factors of its translation's and its rotation's information, from the alignment's
+    information weight (0: unusable); kind EdgeKind.ODOMETRY (a registration) or EdgeKind.LOOP (plvo.results);
+    weight and rotation_weight further factors of its translation's and its rotation's information, from the alignment's
     residual (plvo.backend.worker.residual_weight); the optimisations use zeta * weight and zeta * rotation_weight."""
 
     i: int
     j: int
     T_i_j: np.ndarray
     zeta: float
-    kind: int
+    kind: EdgeKind
     weight: float = 1.0
     rotation_weight: float = 1.0
 
