@@ -235,6 +235,12 @@ def _set_aside(path: Path, suffix: str) -> Path:
         except FileExistsError:
             n += 1
             continue
+        except OSError:  # a file system without hard links: renamed where the name is free (checked just before)
+            if target.exists():
+                n += 1
+                continue
+            os.rename(path, target)
+            return target
         os.unlink(path)
         return target
 
