@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 
 # plvo_eval.bench (numpy, the pipeline) is imported when the bench runs: `plvo bench --help` answers at once
 log = logging.getLogger(__name__)
-# plvo_eval.bench.STAGE_GROUPS, named here for --help (tests/test_cli_terminal.py checks that the two agree)
+# plvo_eval.bench.STAGE_GROUPS, named here for --help (tests/plvo_app/test_terminal.py checks that the two agree)
 STAGE_GROUPS = ("features", "matching", "depth", "registration", "backend", "loop", "system")
 
 REPO = Path(__file__).resolve().parents[1]

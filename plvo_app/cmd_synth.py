@@ -24,7 +24,7 @@ from plvo.errors import SynthError
 
 # The generators (numpy, open3d, the renderer) and tqdm are imported when a sequence is made: `plvo synth --help`
 # answers at once.
-# plvo_synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/test_cli_terminal.py checks that they agree)
+# plvo_synth.twin.lidars.LIDAR_MODELS's names, for --help (tests/plvo_app/test_terminal.py checks that they agree)
 LIDAR_NAMES = ("hdl64", "hdl32", "vlp16", "os128")
 
 

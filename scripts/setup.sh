@@ -44,8 +44,8 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ constraints.txt -nt
   # constraints.txt: the exact versions the suite passes with; pyproject.toml only states ranges
   .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[$extras]"
   # map-closures (lidar place recognition) and kiss-slam (the lidar-only SLAM compared with) pin numpy < 2.3,
-  # pydantic < 2.14 and typer < 0.26 although they run on the versions above (tests/test_lidar_place.py,
-  # tests/test_eval_kiss_slam.py); installed without their dependency pins so that pip keeps ours
+  # pydantic < 2.14 and typer < 0.26 although they run on the versions above (tests/plvo/loop/test_lidar_place.py,
+  # tests/plvo_eval/test_kiss_slam.py); installed without their dependency pins so that pip keeps ours
   .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps -c constraints.txt map-closures kiss-slam
   touch "$stamp"
 fi

@@ -8,6 +8,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -15,6 +16,10 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# The tests mirror the packages (tests/plvo/tracking/test_frontend.py tests plvo/tracking/frontend.py) and are
+# imported by path (pyproject: --import-mode=importlib: a folder tests/plvo must not stand in for the package plvo);
+# what several of them share (fakes, scenes, the faults table) is imported by name from tests/helpers.
+sys.path.insert(0, str(REPO / "tests" / "helpers"))
 KITTI_ROOT = REPO.parent / "shared" / "data" / "kitti"
 
 # What the suite writes to its temporary folder (synthetic towns, twins, recordings) at its peak, kept until the

@@ -47,7 +47,7 @@ class LineSegments:
 def _detector(refine: bool, scale: float) -> cv2.LineSegmentDetector:
     """This thread's LSD for (refine, scale). OpenCV's detector keeps per-image buffers, so one per thread; kept
     between images because a reused one is ~1.5 ms of a frame's 13 cheaper (its buffers are not allocated and
-    faulted in again) and finds the same segments (tests/test_features_lines.py)."""
+    faulted in again) and finds the same segments (tests/plvo/features/test_lines.py)."""
     cache = getattr(_local, "lsd", None)
     if cache is None:
         cache = _local.lsd = {}
@@ -173,7 +173,8 @@ def repair_tolerances(cfg: LineConfig) -> LineConfig:
     """cfg with the repair's distances (chain_offset_px, chain_endpoint_px, merge_distance_px) for its LSD scale:
     as given at lsd_scale 0.5 and finer, grown by 0.5 / lsd_scale below it. LSD places a segment to a fraction of its
     own pixel, which spans 1 / lsd_scale of the image's: at 0.35 the pieces of an edge broken by occluders lie up to
-    ~2 px off each other's line, beyond chain_offset_px, and the edge stays in pieces (tests/test_features_lines.py)."""
+    ~2 px off each other's line, beyond chain_offset_px, and the edge stays in pieces
+    (tests/plvo/features/test_lines.py)."""
     if cfg.lsd_scale >= _TOLERANCE_SCALE:
         return cfg
     grow = _TOLERANCE_SCALE / cfg.lsd_scale

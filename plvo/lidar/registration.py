@@ -27,8 +27,8 @@ exp(-2 (e_bar / e_hat)^2), swaps the two: exp(-2) when both agree, up to 1 when 
 the tracker, near 0 for a registration worse than the tracker's pose. Measured (docs/results/defaults.md): a result
 moved 0.5 m / 1 deg from the right one gets 0.010 on sequence 04 frames 10/13 (paper formula: > 0.3) and ~0 on
 the synthetic town; in the whole system the paper formula let such a corrupted registration pull the synthetic
-trajectory 0.63 m, the inverse one 1 cm (tests/test_backend_system.py). On seq 04 the two formulas give 0.74 /
-0.58 / 0.42 % (paper) and 0.70 / 0.54 / 0.39 % (inverse) short-segment errors at 10 / 20 / 40 m (back end
+trajectory 0.63 m, the inverse one 1 cm (tests/plvo/backend/test_backend_in_system.py). On seq 04 the two formulas
+give 0.74 / 0.58 / 0.42 % (paper) and 0.70 / 0.54 / 0.39 % (inverse) short-segment errors at 10 / 20 / 40 m (back end
 with a 1 mm relative-pose sigma, 0.5 m voxels).
 The dynamic range is limited by e's floor (~0.09 m on seq 04 at the right pose: plane noise, vegetation), so a
 corruption of 0.3 m gives only exp(-2 * 1.35^2) = 0.026.

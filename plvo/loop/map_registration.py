@@ -189,7 +189,7 @@ def _level(src: np.ndarray, dst: np.ndarray, T_init: np.ndarray) -> np.ndarray:
     of the candidate's sensor) lines up. The place recognition aligns density images from above and says nothing
     of height, and two passes over one place can differ in it by metres: the KITTI twins' ground truth, which they
     keep, puts some revisits metres higher than the first pass (up to 7.6 m on 08, docs/twins.md); from 7 m off the
-    first ICP stage (2 m) does not converge (tests/test_lidar_place.py)."""
+    first ICP stage (2 m) does not converge (tests/plvo/loop/test_lidar_place.py)."""
     moved = se3.transform_points(T_init, src)
     ground = []
     for pts in (moved, dst):
