@@ -1,8 +1,9 @@
 """Configuration: nested frozen dataclasses, one per subsystem, with the paper's parameters as defaults.
 
-Load with `load_config(path)` (TOML; unknown keys and values out of range (plvo/config_ranges.py) are rejected
-by their dotted name), save with `save_config`.
-Degrees appear only in fields whose name says so (`*_deg`).
+Each numeric field declares its range and unit beside it (`setting(default, range, unit)`, plvo.config_fields), each
+choice field its values as its type (a Literal). Load with `load_config(path)` (TOML; unknown keys, wrong types and
+values out of their range or choices are refused by their dotted name), save with `save_config`. Degrees appear
+only in fields whose name says so (`*_deg`).
 """
 
 from __future__ import annotations
@@ -16,126 +17,162 @@ from pathlib import Path
 from typing import Any, Literal
 
 from plvo.atomic import write_text_atomic
-from plvo.config_ranges import check_ranges, choices_of
+from plvo.config_fields import (
+    ANGLE,
+    COSINE,
+    COUNT,
+    COUNT0,
+    HAMMING,
+    NON_NEGATIVE,
+    POSITIVE,
+    RATIO,
+    SHARE,
+    Range,
+    check_ranges,
+    choices_of,
+    setting,
+)
 from plvo.errors import ConfigError
 
-# A choice field's type is the Literal of its values: a file is checked against it when read (plvo.config_ranges)
+# A choice field's type is the Literal of its values: a file is checked against it when read (plvo.config_fields)
 RegistrationMethod = Literal["ndt", "icp", "gicp"]  # plvo.lidar.registration's
 
 
 @dataclass(frozen=True)
 class OrbConfig:
-    n_features: int = 1000  # paper, III: 1000 ORB features an image
-    scale_factor: float = 1.2
+    n_features: int = setting(1000, COUNT, "features")  # paper, III: 1000 ORB features an image
+    scale_factor: float = setting(1.2, Range(1.0, 2.0, lo_open=True))
     # ORB-SLAM2 has 8; without the 8th (the frame at 1/3.6, ~60 of the 1000 points, which go to the finer levels)
     # the development set keeps its accuracy, and with LSD at 0.35 twin 08 keeps its last loop, which 8 levels lost
     # (docs/results/faster_config/)
-    n_levels: int = 7
-    fast_threshold: int = 20  # ORB-SLAM2's iniThFAST
-    fast_threshold_min: int = 7  # ORB-SLAM2's minThFAST, retried in cells that found nothing
-    grid_cell_px: int = 35  # bucketing cell size for even spread (ORB-SLAM2 uses 30 px at level 0)
-    edge_threshold: int = 19
+    n_levels: int = setting(7, Range(1, 16), "levels")
+    fast_threshold: int = setting(20, Range(1, 254), "grey levels")  # ORB-SLAM2's iniThFAST
+    # ORB-SLAM2's minThFAST, retried in cells that found nothing
+    fast_threshold_min: int = setting(7, Range(1, 254), "grey levels")
+    # bucketing cell size for even spread (ORB-SLAM2 uses 30 px at level 0)
+    grid_cell_px: int = setting(35, COUNT, "px")
+    edge_threshold: int = setting(19, COUNT, "px")
 
 
 @dataclass(frozen=True)
 class LineConfig:
-    min_length_px: float = 50.0  # paper, III: segments under 50 px are discarded
+    min_length_px: float = setting(50.0, POSITIVE, "px")  # paper, III: segments under 50 px are discarded
     # The repair's distances (px) hold for lsd_scale 0.5 and finer; below it they grow by 0.5 / lsd_scale.
-    chain_endpoint_px: float = 10.0  # endpoints this close may be chained
-    chain_angle_deg: float = 3.0  # chained segments must be this collinear
-    chain_offset_px: float = 1.5  # and lie this close to each other's supporting line
-    merge_distance_px: float = 3.0  # near-parallel segments this close are merged (double edges)
-    merge_angle_deg: float = 3.0
-    merge_overlap: float = 0.5  # fraction of the shorter segment that must overlap the longer
-    max_iterations: int = 10  # repeat chaining and merging until stable, at most this often
+    chain_endpoint_px: float = setting(10.0, NON_NEGATIVE, "px")  # endpoints this close may be chained
+    chain_angle_deg: float = setting(3.0, ANGLE, "deg")  # chained segments must be this collinear
+    chain_offset_px: float = setting(1.5, NON_NEGATIVE, "px")  # and lie this close to each other's supporting line
+    # near-parallel segments this close are merged (double edges)
+    merge_distance_px: float = setting(3.0, NON_NEGATIVE, "px")
+    merge_angle_deg: float = setting(3.0, ANGLE, "deg")
+    merge_overlap: float = setting(0.5, SHARE)  # fraction of the shorter segment that must overlap the longer
+    # repeat chaining and merging until stable, at most this often
+    max_iterations: int = setting(10, COUNT, "iterations")
     # LSD on the image downsampled to 0.35: two thirds of its CPU at 0.5 on KITTI 04 (12 against 18 ms a frame,
     # measured alone; 55-65 ms at 1), the repair's distances grown with LSD's pixel. Chosen with the cheaper back end
     # for plvo's speed against KISS-ICP's on KITTI 04, on the development set (docs/results/faster_config/)
-    lsd_scale: float = 0.35
-    max_lines: int = 300  # keep the longest segments when more are found
+    lsd_scale: float = setting(0.35, RATIO)
+    max_lines: int = setting(300, COUNT, "segments")  # keep the longest segments when more are found
     lsd_refine: bool = True  # OpenCV's LSD_REFINE_STD (else LSD_REFINE_NONE)
-    raw_min_length_px: float = 8.0  # raw LSD segments shorter than this take no part in the repair
-    min_anchor_px: float = 0.0  # a repaired segment's longest raw member must be at least this long
+    # raw LSD segments shorter than this take no part in the repair
+    raw_min_length_px: float = setting(8.0, NON_NEGATIVE, "px")
+    # a repaired segment's longest raw member must be at least this long
+    min_anchor_px: float = setting(0.0, NON_NEGATIVE, "px")
     in_thread: bool = True  # run LSD + repair + LBD in a worker thread beside ORB
 
 
 @dataclass(frozen=True)
 class MatchingConfig:
-    point_ratio: float = 0.8  # Lowe ratio for ORB Hamming matches
-    point_max_hamming: int = 64
+    point_ratio: float = setting(0.8, RATIO)  # Lowe ratio for ORB Hamming matches
+    point_max_hamming: int = setting(64, HAMMING, "bits")
     point_mutual: bool = True
-    point_window_px: float = 60.0  # search radius around the predicted position, when a prediction exists
-    line_max_lbd: int = 80  # LBD Hamming distance bound
-    line_angle_deg: float = 2.0  # paper, III: angle threshold 2 deg
-    line_length_ratio: float = 0.1  # paper, III: length difference ratio 0.1
-    line_midpoint_px: float = 5.0  # paper, III: midpoint distance 5 px (after the predicted motion)
-    line_midpoint_px_unpredicted: float = 40.0  # window when no motion prediction is available
-    line_ratio: float = 1.0  # Lowe ratio among a line's geometric candidates (1.0: off, as in the paper)
+    # search radius around the predicted position, when a prediction exists
+    point_window_px: float = setting(60.0, POSITIVE, "px")
+    line_max_lbd: int = setting(80, HAMMING, "bits")  # LBD Hamming distance bound
+    line_angle_deg: float = setting(2.0, ANGLE, "deg")  # paper, III: angle threshold 2 deg
+    line_length_ratio: float = setting(0.1, POSITIVE)  # paper, III: length difference ratio 0.1
+    # paper, III: midpoint distance 5 px (after the predicted motion)
+    line_midpoint_px: float = setting(5.0, POSITIVE, "px")
+    line_midpoint_px_unpredicted: float = setting(40.0, POSITIVE, "px")  # window when no motion prediction is available
+    # Lowe ratio among a line's geometric candidates (1.0: off, as in the paper)
+    line_ratio: float = setting(1.0, RATIO)
 
 
 @dataclass(frozen=True)
 class DepthConfig:
-    point_patch_px: int = 7  # half-size of the square patch searched around a point feature
-    line_patch_px: int = 4  # half-width of the band searched around a line feature
-    min_points: int = 4  # fewer lidar points in a patch: no prior
-    depth_jump_ratio: float = 0.05  # depth discontinuity between foreground and background, relative
-    depth_jump_min_m: float = 0.3
-    plane_inlier_m: float = 0.08
-    plane_max_rms_m: float = 0.1
-    min_ray_plane_cos: float = 0.1  # rays closer to parallel with the plane give no depth
-    max_depth_m: float = 80.0
-    line_min_points: int = 6
-    line_max_rms_m: float = 0.15
-    line_lm_iterations: int = 10
-    line_reprojection_weight: float = 0.1  # metres a pixel of reprojection error weighs against point distances
-    min_inlier_fraction: float = 0.6  # plane inliers must be this share of the segmented foreground
-    plane_max_flatness: float = 0.35  # sqrt(eig1/eig2) above this: tilt unknown, plane facing the camera
-    grid_cell_px: int = 8  # cell size of the projected-scan index
-    zbuffer_px: int = 1  # z-buffer block size: the nearest return of each block is kept
-    min_depth_m: float = 0.5  # projected returns nearer than this are dropped
-    line_max_points: int = 64  # band points kept a segment (evenly thinned), bounds the LM's cost
-    line_huber_m: float = 0.02  # Huber threshold on point-to-line distances (near the paper's sum of distances)
-    line_core_px: float = 2.0  # band points this close to the segment set each stretch's reference depth
-    line_inlier_m: float = 0.2  # band points farther from the fitted line are not counted
-    line_min_coverage: float = 0.3  # inliers must span this fraction of the segment
-    line_max_reproj_px: float = 2.0  # fitted line's RMS reprojection residual against the segment
-    min_ray_line_sin: float = 0.05  # end rays closer to parallel with the 3D line give no endpoints
+    point_patch_px: int = setting(7, COUNT, "px")  # half-size of the square patch searched around a point feature
+    line_patch_px: int = setting(4, COUNT, "px")  # half-width of the band searched around a line feature
+    min_points: int = setting(4, Range(3), "points")  # fewer lidar points in a patch: no prior
+    # depth discontinuity between foreground and background, relative
+    depth_jump_ratio: float = setting(0.05, NON_NEGATIVE)
+    depth_jump_min_m: float = setting(0.3, NON_NEGATIVE, "m")
+    plane_inlier_m: float = setting(0.08, POSITIVE, "m")
+    plane_max_rms_m: float = setting(0.1, POSITIVE, "m")
+    min_ray_plane_cos: float = setting(0.1, COSINE)  # rays closer to parallel with the plane give no depth
+    max_depth_m: float = setting(80.0, POSITIVE, "m")
+    line_min_points: int = setting(6, Range(2), "points")
+    line_max_rms_m: float = setting(0.15, POSITIVE, "m")
+    line_lm_iterations: int = setting(10, COUNT, "iterations")
+    # metres a pixel of reprojection error weighs against point distances
+    line_reprojection_weight: float = setting(0.1, NON_NEGATIVE, "m/px")
+    min_inlier_fraction: float = setting(0.6, SHARE)  # plane inliers must be this share of the segmented foreground
+    # sqrt(eig1/eig2) above this: tilt unknown, plane facing the camera
+    plane_max_flatness: float = setting(0.35, RATIO)
+    grid_cell_px: int = setting(8, COUNT, "px")  # cell size of the projected-scan index
+    zbuffer_px: int = setting(1, COUNT, "px")  # z-buffer block size: the nearest return of each block is kept
+    min_depth_m: float = setting(0.5, NON_NEGATIVE, "m")  # projected returns nearer than this are dropped
+    # band points kept a segment (evenly thinned), bounds the LM's cost
+    line_max_points: int = setting(64, Range(2), "points")
+    # Huber threshold on point-to-line distances (near the paper's sum of distances)
+    line_huber_m: float = setting(0.02, POSITIVE, "m")
+    # band points this close to the segment set each stretch's reference depth
+    line_core_px: float = setting(2.0, POSITIVE, "px")
+    line_inlier_m: float = setting(0.2, POSITIVE, "m")  # band points farther from the fitted line are not counted
+    line_min_coverage: float = setting(0.3, SHARE)  # inliers must span this fraction of the segment
+    # fitted line's RMS reprojection residual against the segment
+    line_max_reproj_px: float = setting(2.0, POSITIVE, "px")
+    min_ray_line_sin: float = setting(0.05, COSINE)  # end rays closer to parallel with the 3D line give no endpoints
     # sparser lidars (plvo.depth.density): patches scaled by the scan's ring spacing over the HDL-64E's in KITTI's
     # camera when it is at least adapt_min_ratio times larger (16 beams: about 4x, 32: 2x; 64: unchanged)
     adapt_to_ring_spacing: bool = True
-    reference_ring_spacing_px: float = 5.0
-    adapt_min_ratio: float = 1.5
-    adapt_max_ratio: float = 5.0
+    reference_ring_spacing_px: float = setting(5.0, POSITIVE, "px")
+    adapt_min_ratio: float = setting(1.5, Range(1.0))
+    adapt_max_ratio: float = setting(5.0, Range(1.0))
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
     points_only: bool = False  # the paper's point-only baseline
     use_depth_priors: bool = True  # ablation "no depth priors": landmarks by triangulation only
-    keyframe_every: int = 3  # paper: a keyframe every 3-4 frames
-    keyframe_max_gap: int = 4
-    min_tracked_landmarks: int = 60  # fewer: make a keyframe early
-    max_rotation_deg: float = 10.0  # larger rotation since the last keyframe: make a keyframe early
-    min_pnp_inliers: int = 15  # fewer: tracking is lost and re-initialised from the current lidar depth
+    keyframe_every: int = setting(3, COUNT, "frames")  # paper: a keyframe every 3-4 frames
+    keyframe_max_gap: int = setting(4, COUNT, "frames")
+    min_tracked_landmarks: int = setting(60, COUNT0, "landmarks")  # fewer: make a keyframe early
+    # larger rotation since the last keyframe: make a keyframe early
+    max_rotation_deg: float = setting(10.0, POSITIVE, "deg")
+    # fewer: tracking is lost and re-initialised from the current lidar depth
+    min_pnp_inliers: int = setting(15, Range(4), "inliers")
     # A solution with fewer inliers than this share of the last frame's is checked against matching without the
     # motion model (frontend.py); 0 disables.
-    weak_inlier_share: float = 0.4
-    rescue_yaw_deg: tuple[float, ...] = (6.0, -6.0, 12.0, -12.0)  # motion-model yaw offsets a rescue also tries
-    ransac_reproj_px: float = 2.0
-    ransac_line_px: float = 2.0
-    ransac_iterations: int = 1000
-    outlier_reproj_px: float = 3.0
-    search_radius_px: float = 8.0  # landmarks of recent keyframes re-found this close to their projection
-    search_keyframes: int = 2  # how many recent keyframes' landmarks are searched for (0: previous frame only)
+    weak_inlier_share: float = setting(0.4, SHARE)
+    # motion-model yaw offsets a rescue also tries
+    rescue_yaw_deg: tuple[float, ...] = setting((6.0, -6.0, 12.0, -12.0), Range(-90.0, 90.0), "deg")
+    ransac_reproj_px: float = setting(2.0, POSITIVE, "px")
+    ransac_line_px: float = setting(2.0, POSITIVE, "px")
+    ransac_iterations: int = setting(1000, COUNT, "iterations")
+    outlier_reproj_px: float = setting(3.0, POSITIVE, "px")
+    # landmarks of recent keyframes re-found this close to their projection
+    search_radius_px: float = setting(8.0, POSITIVE, "px")
+    # how many recent keyframes' landmarks are searched for (0: previous frame only)
+    search_keyframes: int = setting(2, COUNT0, "keyframes")
     # Line landmarks re-found by projection (plvo/tracking/search.py), beside the 2D-2D matches.
     search_lines: bool = True
-    line_search_px: float = 4.0  # both endpoints of a segment this close to the projected landmark line
-    line_search_angle_deg: float = 3.0
-    line_search_overlap: float = 0.3  # shared extent along the line, as a share of the shorter segment
+    # both endpoints of a segment this close to the projected landmark line
+    line_search_px: float = setting(4.0, POSITIVE, "px")
+    line_search_angle_deg: float = setting(3.0, ANGLE, "deg")
+    line_search_overlap: float = setting(0.3, SHARE)  # shared extent along the line, as a share of the shorter segment
     # Every this many keyframes the map drops the landmarks nothing can use any more (seen by one keyframe, out of
     # every back-end window and tracker search; LandmarkMap.drop_unreachable), so memory follows what is kept, not
     # the length of the run; 0 keeps them all.
-    drop_unreachable_every: int = 10
+    drop_unreachable_every: int = setting(10, COUNT0, "keyframes")
 
 
 @dataclass(frozen=True)
@@ -144,31 +181,36 @@ class CrossCheckConfig:
 
     enabled: bool = True
     at_keyframes: bool = True  # every keyframe's motion since the previous keyframe, beside the doubtful frames
-    voxel_m: float = 1.5  # scans downsampled this coarse reach 4 m steps from standing still (lidar_check.py)
-    min_range_m: float = 2.0  # the car's own roof and mirrors
-    max_range_m: float = 80.0
-    min_fitness: float = 0.5  # fewer source points with a target within a voxel: the lidar cannot judge
-    degenerate_ratio: float = 0.02  # translation's information this ill-conditioned: the lidar cannot judge
+    # scans downsampled this coarse reach 4 m steps from standing still (lidar_check.py)
+    voxel_m: float = setting(1.5, POSITIVE, "m")
+    min_range_m: float = setting(2.0, NON_NEGATIVE, "m")  # the car's own roof and mirrors
+    max_range_m: float = setting(80.0, POSITIVE, "m")
+    min_fitness: float = setting(0.5, SHARE)  # fewer source points with a target within a voxel: the lidar cannot judge
+    # translation's information this ill-conditioned: the lidar cannot judge
+    degenerate_ratio: float = setting(0.02, SHARE)
     # The camera agrees with the lidar within agree_m plus agree_share of the step and agree_deg
-    agree_m: float = 0.3
-    agree_share: float = 0.1
-    agree_deg: float = 1.5
+    agree_m: float = setting(0.3, POSITIVE, "m")
+    agree_share: float = setting(0.1, NON_NEGATIVE)
+    agree_deg: float = setting(1.5, POSITIVE, "deg")
     # A step this far from the motion model's (metres plus share of the predicted step; degrees) calls the lidar
-    doubt_m: float = 0.5
-    doubt_share: float = 0.3
-    doubt_deg: float = 3.0
-    frozen_image_grey: float = 0.5  # mean absolute difference (grey levels) below which an image repeats the last
-    still_m: float = 0.05  # the lidar moved less than this: the car stands (a repeated image is then no fault)
-    gap_factor: float = 1.5  # a frame interval this many times the previous one: frames were dropped
+    doubt_m: float = setting(0.5, POSITIVE, "m")
+    doubt_share: float = setting(0.3, NON_NEGATIVE)
+    doubt_deg: float = setting(3.0, POSITIVE, "deg")
+    # mean absolute difference (grey levels) below which an image repeats the last
+    frozen_image_grey: float = setting(0.5, NON_NEGATIVE, "grey levels")
+    # the lidar moved less than this: the car stands (a repeated image is then no fault)
+    still_m: float = setting(0.05, NON_NEGATIVE, "m")
+    # a frame interval this many times the previous one: frames were dropped
+    gap_factor: float = setting(1.5, Range(1.0, lo_open=True))
     # Camera-lidar time offset (plvo.tracking.time_offset): the lidar's scans taken time_offset_s after the images
     # (stated by the user where known; each scan is then moved to its image's instant); estimated from the checked
     # intervals' rotations within +-offset_max_s and named when observable (sigma below offset_sigma_s) and over
     # offset_warn_s from the stated one.
-    time_offset_s: float = 0.0
+    time_offset_s: float = setting(0.0, Range(-0.5, 0.5), "s")
     estimate_time_offset: bool = True
-    offset_max_s: float = 0.2
-    offset_sigma_s: float = 0.01
-    offset_warn_s: float = 0.02
+    offset_max_s: float = setting(0.2, Range(0.0, 0.5, lo_open=True), "s")
+    offset_sigma_s: float = setting(0.01, POSITIVE, "s")
+    offset_warn_s: float = setting(0.02, NON_NEGATIVE, "s")
     # A found offset is used by running again from the first frame with it stated (the run loops of plvo.runtime.run and
     # plvo-viz): moving the scans mid-run mixed the frames before it with those after (docs/crosscheck.md)
     restart_on_offset: bool = True
@@ -178,16 +220,19 @@ class CrossCheckConfig:
 class RegistrationConfig:
     method: RegistrationMethod = "ndt"  # "ndt", or "icp" / "gicp" directly
     fallback: RegistrationMethod | Literal["none"] = "icp"  # used when NDT fails; "none" to disable
-    voxel_m: float = 0.6  # as accurate as 0.5 on 04 with 2/3 of the points (docs/results/defaults.md)
-    ndt_resolution_m: float = 1.0
-    max_iterations: int = 30
-    max_range_m: float = 60.0
-    max_correspondence_m: float = 1.0
-    min_range_m: float = 2.0  # drop returns from the car itself
-    ndt_coarse_resolution_m: float = 3.0  # a first NDT pass at this resolution widens the basin; 0 disables
-    min_fitness: float = 0.3  # fewer source points with an NDT/ICP correspondence: registration failed
-    max_jump_m: float = 1.5  # a result this far from the initial guess (translation) counts as failed
-    max_jump_deg: float = 5.0
+    # as accurate as 0.5 on 04 with 2/3 of the points (docs/results/defaults.md)
+    voxel_m: float = setting(0.6, POSITIVE, "m")
+    ndt_resolution_m: float = setting(1.0, POSITIVE, "m")
+    max_iterations: int = setting(30, COUNT, "iterations")
+    max_range_m: float = setting(60.0, POSITIVE, "m")
+    max_correspondence_m: float = setting(1.0, POSITIVE, "m")
+    min_range_m: float = setting(2.0, NON_NEGATIVE, "m")  # drop returns from the car itself
+    # a first NDT pass at this resolution widens the basin; 0 disables
+    ndt_coarse_resolution_m: float = setting(3.0, NON_NEGATIVE, "m")
+    min_fitness: float = setting(0.3, SHARE)  # fewer source points with an NDT/ICP correspondence: registration failed
+    # a result this far from the initial guess (translation) counts as failed
+    max_jump_m: float = setting(1.5, POSITIVE, "m")
+    max_jump_deg: float = setting(5.0, POSITIVE, "deg")
     # "inverse": exp(-2 (e_bar/e_hat)^2), so that a registration worse than the tracker's pose gets a small weight
     # (plvo/lidar/registration.py, docs/results/defaults.md); "paper": exp(-2 (e_hat/e_bar)^2) as printed.
     zeta_formula: Literal["paper", "inverse"] = "inverse"
@@ -204,40 +249,40 @@ class BackendConfig:
     # scale correction and of the bundle adjustment. Off together with scale_correction is the paper's Ours (#).
     registration: bool = True
     scale_correction: bool = True  # the scale correction optimisation (II-D) before the bundle adjustment
-    window_keyframes: int = 8
-    sigma_point_px: float = 0.1  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)
-    sigma_line: float = 0.2  # paper, III: Sigma^L = 0.2 I
+    window_keyframes: int = setting(8, Range(2), "keyframes")
+    sigma_point_px: float = setting(0.1, POSITIVE, "px")  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)
+    sigma_line: float = setting(0.2, POSITIVE, "px")  # paper, III: Sigma^L = 0.2 I
     # The paper sets the relative-pose information to zeta I; zeta is dimensionless, so base standard deviations
     # (metres, degrees) scale it against the reprojection factors: information = zeta / sigma^2 per component.
     # Small enough that the lidar's relative poses, not the 0.1 px point factors (~10x below real pixel noise), set
     # the scale and the direction of travel; the rotation sigma is smaller again because the registration's rotation
     # is ~100x better than its translation in these units (docs/results/defaults.md).
-    sigma_relative_pose: float = 0.0001
-    sigma_relative_rotation_deg: float = 0.0003
+    sigma_relative_pose: float = setting(0.0001, POSITIVE, "m")
+    sigma_relative_rotation_deg: float = setting(0.0003, POSITIVE, "deg")
     # ... for an alignment whose residual (its mean point-to-plane distance, e_bar) is relative_pose_residual_m; both
     # sigmas grow as (e_bar / relative_pose_residual_m)^relative_pose_residual_power (backend.worker.residual_weight).
     # On the development set the twins' alignments (e_bar 0.03-0.045 m) wanted 0.1 mm (0.5 mm let the tracker's
     # direction of travel, 0.1 deg off, pull the trajectory), real KITTI 04's (e_bar ~0.086 m: calibration, the
     # elevation error, a real scene) 1 mm (0.1 mm put it behind KISS-ICP); a third power meets both.
-    relative_pose_residual_m: float = 0.04
-    relative_pose_residual_power: float = 3.0
+    relative_pose_residual_m: float = setting(0.04, POSITIVE, "m")
+    relative_pose_residual_power: float = setting(3.0, NON_NEGATIVE)
     # The rotation's sigma grows with its own, smaller power: a rougher surface leaves an alignment's translation
     # sliding along the scene more than its rotation (lever arms of tens of metres), and a rotation factor weakened
     # as much as the translation's let the tracker's heading pull the trajectory on the realistic twins (devkit
     # pooled over the development twins 03, 04, 09: 0.32 % at 3, 0.12 % at 1; docs/results/rotation_weight/).
-    relative_rotation_residual_power: float = 1.0
+    relative_rotation_residual_power: float = setting(1.0, NON_NEGATIVE)
     # Virtual baseline of the depth-prior (stereo-form) point factors: their depth weight grows with b^2. KITTI's
     # 0.54: a smaller one gave worse rotations on 04 and worse errors on the towns (docs/results/defaults.md).
-    stereo_baseline_m: float = 0.54
-    huber_point: float = 2.0
-    huber_line: float = 2.0
+    stereo_baseline_m: float = setting(0.54, POSITIVE, "m")
+    huber_point: float = setting(2.0, POSITIVE, "px")
+    huber_line: float = setting(2.0, POSITIVE, "px")
     # 5 gave as good a window as 10 at half the time (docs/results/defaults.md), 3 as good as 5 on twins 03 and 04
     # and real 04 (docs/results/cheaper_backend/), and with the defaults' features on the whole development set
     # (docs/results/faster_config/)
-    iterations: int = 3
+    iterations: int = setting(3, COUNT, "iterations")
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
-    outlier_px: float = 4.0
+    outlier_px: float = setting(4.0, NON_NEGATIVE, "px")
     concurrent: bool = True  # run the back end and the loop closer beside the tracker (False: inline, lag 0)
     # Where the concurrent workers run (plvo.runtime.workers): "process" (no GIL shared with the tracker; the
     # features are then extracted in a process of their own too, plvo.features.worker) or "thread".
@@ -246,118 +291,126 @@ class BackendConfig:
     # due, before it fails the run naming the worker (a stopped or deadlocked process; a dead one is seen at once).
     # The slowest single job measured, a global bundle adjustment near the end of the 4541-frame soak, took 5.3 s
     # (docs/results/soak): 300 s leaves a wide margin for a slower or busier machine.
-    worker_timeout_s: float = 300.0
+    worker_timeout_s: float = setting(300.0, POSITIVE, "s")
     # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
     # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Longer
     # than the keyframe spacing, so that the next keyframe's frame is tracked while the back end works instead of
     # waiting for it (docs/results/defaults.md).
-    max_lag_frames: int = 6
+    max_lag_frames: int = setting(6, COUNT0, "frames")
     # What a keyframe's scan is registered to for the relative-pose factors (plvo.lidar.local_map): "local_map", a
     # voxel map of the last local_map_keyframes keyframes' scans in the world frame, or "keyframe", the previous
     # keyframe's scan alone (NDT keyframe to keyframe).
     lidar_target: Literal["local_map", "keyframe"] = "local_map"
-    local_map_keyframes: int = 10
-    local_map_voxel_m: float = 0.5
+    local_map_keyframes: int = setting(10, COUNT, "keyframes")
+    local_map_voxel_m: float = setting(0.5, POSITIVE, "m")
     # Source points a map alignment uses at most, evenly thinned from the keyframe's registration cloud (an ICP
     # iteration costs by the source point): a KITTI-sized scan has 5-9k at the 0.6 m registration voxel, and 4000
     # fix the pose as well as all of them (2000 as well on the development set, docs/results/cheaper_backend/); a
     # denser lidar's scans are thinned to the same cost.
-    local_map_source_points: int = 2000
+    local_map_source_points: int = setting(2000, Range(100), "points")
 
 
 @dataclass(frozen=True)
 class LoopConfig:
     enabled: bool = True
-    min_keyframe_gap: int = 30  # ignore candidates among the last keyframes
-    min_score: float = 0.3
-    consistency: int = 3  # consecutive keyframes that must agree
-    min_inliers: int = 30
+    min_keyframe_gap: int = setting(30, COUNT0, "keyframes")  # ignore candidates among the last keyframes
+    min_score: float = setting(0.3, NON_NEGATIVE)
+    consistency: int = setting(3, COUNT, "keyframes")  # consecutive keyframes that must agree
+    min_inliers: int = setting(30, Range(4), "inliers")
     # The loop closer's detection and verification (plvo/loop/).
     vocab_dir: str = ""  # folder with orb.npz / lbd.npz; empty: the shipped plvo/assets/vocab
-    min_neighbour_score: float = 0.005  # skip the query when even the previous keyframe scores below this
-    neighbours: int = 1  # normalise by the best combined score among this many previous keyframes
-    island_gap: int = 3  # candidates this close in keyframe id form one island (DBoW2 group)
-    max_verify: int = 2  # best candidates of the winning island checked geometrically
-    loop_cooldown: int = 5  # keyframes after an accepted loop during which no new loop is verified
-    ratio: float = 0.8  # Lowe ratio for ORB / LBD matches between the two keyframes
-    point_max_hamming: int = 64
-    line_max_hamming: int = 80
-    ransac_px: float = 3.0  # PnP/PnL RANSAC and inlier threshold between the keyframes (px)
+    # skip the query when even the previous keyframe scores below this
+    min_neighbour_score: float = setting(0.005, NON_NEGATIVE)
+    # normalise by the best combined score among this many previous keyframes
+    neighbours: int = setting(1, COUNT, "keyframes")
+    # candidates this close in keyframe id form one island (DBoW2 group)
+    island_gap: int = setting(3, COUNT0, "keyframes")
+    max_verify: int = setting(2, COUNT, "candidates")  # best candidates of the winning island checked geometrically
+    # keyframes after an accepted loop during which no new loop is verified
+    loop_cooldown: int = setting(5, COUNT0, "keyframes")
+    ratio: float = setting(0.8, RATIO)  # Lowe ratio for ORB / LBD matches between the two keyframes
+    point_max_hamming: int = setting(64, HAMMING, "bits")
+    line_max_hamming: int = setting(80, HAMMING, "bits")
+    ransac_px: float = setting(3.0, POSITIVE, "px")  # PnP/PnL RANSAC and inlier threshold between the keyframes (px)
     use_registration: bool = True  # refine the PnP/PnL pose by scan registration when scans are given
-    min_off_plane: int = 10  # PnP/PnL inliers (3D) off their dominant plane: rejects tiled ground textures
-    plane_tolerance_m: float = 0.3
-    odom_sigma_rot: float = 0.01  # pose-graph sigmas of a keyframe-to-keyframe edge (rad, m)
-    odom_sigma_trans: float = 0.05
-    loop_sigma_rot: float = 0.01  # and of a verified loop edge
-    loop_sigma_trans: float = 0.05
-    pgo_iterations: int = 100
+    # PnP/PnL inliers (3D) off their dominant plane: rejects tiled ground textures
+    min_off_plane: int = setting(10, COUNT0, "inliers")
+    plane_tolerance_m: float = setting(0.3, POSITIVE, "m")
+    odom_sigma_rot: float = setting(0.01, POSITIVE, "rad")  # pose-graph sigmas of a keyframe-to-keyframe edge (rad, m)
+    odom_sigma_trans: float = setting(0.05, POSITIVE, "m")
+    loop_sigma_rot: float = setting(0.01, POSITIVE, "rad")  # and of a verified loop edge
+    loop_sigma_trans: float = setting(0.05, POSITIVE, "m")
+    pgo_iterations: int = setting(100, COUNT, "iterations")
     global_ba: bool = True  # a global bundle adjustment of poses and points after the pose graph (global_ba.py)
-    global_ba_iterations: int = 10
-    global_ba_max_px: float = 8.0  # observations further from their landmark's projection are left out
+    global_ba_iterations: int = setting(10, COUNT, "iterations")
+    # observations further from their landmark's projection are left out
+    global_ba_max_px: float = setting(8.0, POSITIVE, "px")
     # Points in the global BA at most, the same share for every keyframe (global_ba.point_budget); 0: all.
-    global_ba_max_points: int = 15000
+    global_ba_max_points: int = setting(15000, COUNT0, "points")
     # A global BA result moving a keyframe further from the pose graph's solution than max_move_m + move_fraction x
     # the pose graph's largest correction is not applied (global_ba.implausible).
     # Wide enough for right results that move a mid-loop keyframe ~1 m, narrow enough for wrong ones that move
     # keyframes 6-12 m (the 1 km loop of town 21, docs/results/defaults.md).
-    global_ba_max_move_m: float = 2.0
-    global_ba_move_fraction: float = 1.0
+    global_ba_max_move_m: float = setting(2.0, NON_NEGATIVE, "m")
+    global_ba_move_fraction: float = setting(1.0, NON_NEGATIVE)
     # A verified loop must agree with the odometry up to this drift: the correction it implies for the query keyframe
     # may be at most max_drift_fraction x the distance driven since the matched keyframe + max_drift_floor_m (the
     # synthetic town repeats buildings: a 187 m false loop passed PnP/PnL and scan registration). 0 disables.
-    max_drift_fraction: float = 0.1
-    max_drift_floor_m: float = 2.0
+    max_drift_fraction: float = setting(0.1, NON_NEGATIVE)
+    max_drift_floor_m: float = setting(2.0, NON_NEGATIVE, "m")
     # Two keyframes that see one place are at most this far apart: a longer loop edge is refused, and a candidate
     # the odometry puts further away than its drift bound plus this is refused before verification.
-    max_view_m: float = 40.0
+    max_view_m: float = setting(40.0, POSITIVE, "m")
     # Lidar place recognition beside the bags of words (plvo.loop.lidar_place, map-closures' density maps, which
     # find a place whichever way it is driven), verified by scan registration alone.
     lidar_place: bool = True
     # A place node every this much driving: map_closures keeps 50-120 kB a node (15-35 kB a KITTI keyframe at 10 m)
     # and a query costs ~4 ms a matching node; local maps reach 60 m further, so 10 m apart they overlap mostly.
-    lidar_place_spacing_m: float = 10.0
+    lidar_place_spacing_m: float = setting(10.0, NON_NEGATIVE, "m")
     # A keyframe's local map: the scans of the keyframes this far before and after it (a node waits until the car is
     # this far past it). Maps around the keyframe found a median 14 density-map inliers on true revisits, maps of the
     # last 30 m 8 (plvo/loop/lidar_place.py).
-    lidar_place_reach_m: float = 20.0
+    lidar_place_reach_m: float = setting(20.0, NON_NEGATIVE, "m")
     # Local maps cropped to this radius: ORB leaves out 15.5 m (31 px) at the density image's border; 50 m found
     # half the inliers of 70 m on the out-and-back twin.
-    lidar_place_radius_m: float = 70.0
-    lidar_place_voxel_m: float = 0.5  # local map voxel and density image pixel (map_closures'; 0.75 and 1 found less)
+    lidar_place_radius_m: float = setting(70.0, POSITIVE, "m")
+    # local map voxel and density image pixel (map_closures'; 0.75 and 1 found less)
+    lidar_place_voxel_m: float = setting(0.5, POSITIVE, "m")
     # ORB matches between density images within this Hamming distance: map_closures' 50 validated 4-10x more stored
     # places at ~4 ms each on the project's machine (median query 85 ms against 9 at 145 nodes); 30 lost true matches.
-    lidar_place_hamming: int = 40
-    lidar_place_min_inliers: int = 5  # map_closures' own threshold: true revisits reached 5-24, other places 4 at most
+    lidar_place_hamming: int = setting(40, HAMMING, "bits")
+    # map_closures' own threshold: true revisits reached 5-24, other places 4 at most
+    lidar_place_min_inliers: int = setting(5, Range(3), "inliers")
     # Verification by registering the two keyframes' local maps (plvo.loop.map_registration): of the query's map
     # the points within this radius, which the candidate's map (the same place seen from up to 40 m) covers.
-    scan_verify_radius_m: float = 40.0
+    scan_verify_radius_m: float = setting(40.0, POSITIVE, "m")
     # Share of the query's points matched: accepted revisits 0.57-1.00 on the twins 01 and 03-10; a corner of 08
     # seen from two streets passed with 0.40 (error 0.124 m), its edge 0.54 m / 2.0 deg off (0.3 took it).
-    scan_min_overlap: float = 0.5
+    scan_min_overlap: float = setting(0.5, SHARE)
     # RMS point-to-plane distance (each capped at 0.5 m): true revisits 0.03-0.06 m on the twins' deskewed scans, up
     # to 0.12 m on their swept (raw) ones
-    scan_max_error_m: float = 0.15
+    scan_max_error_m: float = setting(0.15, POSITIVE, "m")
     # Smallest eigenvalue of the point-to-plane Hessian per point (rotations at a 10 m lever): true revisits
     # 0.028-0.137 on twins and town, other places lined up (a street slid along itself, the town's look-alike
     # streets) 0.002-0.034, a corridor ~0. Above this floor the restarts decide (scan_unique_m): twin 09's long
     # straight first street, revisited, had 0.012-0.024 and came back within 0.01-0.02 m where the places lined up
     # ended 0.47-3.99 m away (docs/results/faster_config/); below it (the corridor) nothing is registered.
-    scan_min_constraint: float = 0.005
+    scan_min_constraint: float = setting(0.005, NON_NEGATIVE)
     # ICP restarted this far to either side along the least constrained direction must come back within
     # scan_unique_m: true revisits came back within 0.00-0.11 m, other places lined up ended 0.47-7.4 m away.
-    scan_basin_m: float = 3.0
-    scan_unique_m: float = 0.3
+    scan_basin_m: float = setting(3.0, NON_NEGATIVE, "m")
+    scan_unique_m: float = setting(0.3, POSITIVE, "m")
     # A scan-verified loop edge joins keyframes at most this far apart (a candidate further away hands it to its
     # neighbour nearest the query, so the edge joins the nearest views there are): local maps reach 20 m either side
     # of their keyframe, and KITTI 09's return ends 16 m from its first keyframes (registered with overlap 0.93).
-    scan_max_edge_m: float = 20.0
+    scan_max_edge_m: float = setting(20.0, POSITIVE, "m")
     # A bag-of-words candidate refused for too few image matches with depth or PnP/PnL inliers is registered too,
     # from the odometry's relative pose (the best such candidate of a keyframe: a registration costs 0.2-1 s).
     scan_fallback: bool = True
     # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
     # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
-    max_lag_frames: int = 20
-    global_ba_lag_frames: int = 100
+    max_lag_frames: int = setting(20, COUNT0, "frames")
+    global_ba_lag_frames: int = setting(100, COUNT0, "frames")
 
 
 @dataclass(frozen=True)
@@ -431,7 +484,7 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
 
 def config_from_dict(data: dict[str, Any]) -> SystemConfig:
     """Build a config from nested dicts; unknown keys, wrong types and values out of their range
-    (plvo.config_ranges) raise ConfigError naming the dotted key."""
+    (plvo.config_fields) raise ConfigError naming the dotted key."""
     cfg = _from_dict(SystemConfig, data, "")
     check_ranges(cfg)
     return cfg

@@ -95,3 +95,34 @@ def test_ablations_change_what_they_say():
 def test_toml_text_is_readable():
     text = config_to_toml(SystemConfig())
     assert "[orb]" in text and "n_features = 1000" in text
+
+
+def test_every_numeric_field_declares_its_range_and_unit_beside_it():
+    """The contract of a field is where the field is: its range and unit in its declaration (plvo.config_fields
+    .setting), a unit its name states (`_m`, `_px`, `_deg`, `_s`) the one declared, and a field declared without
+    a range refused when the config is checked."""
+    import dataclasses
+
+    from plvo.config_fields import SUFFIX_UNITS, Range, check_ranges, numeric_fields, setting
+
+    fields = numeric_fields(SystemConfig())
+    assert len(fields) > 150
+    for key, decl in fields.items():
+        assert isinstance(decl.valid, Range), key
+        named = next((u for suffix, u in SUFFIX_UNITS.items() if key.endswith(suffix)), None)
+        assert named is None or decl.unit == named, (key, decl.unit)
+    assert fields["registration.voxel_m"].unit == "m" and fields["loop.odom_sigma_rot"].unit == "rad"
+    assert fields["orb.n_features"].unit == "features" and fields["lines.lsd_scale"].unit == ""
+
+    @dataclasses.dataclass(frozen=True)
+    class Part:
+        declared: float = setting(1.0, Range(0.0, 2.0), "m")
+        undeclared_m: float = 1.0
+
+    @dataclasses.dataclass(frozen=True)
+    class Whole:
+        part: Part = dataclasses.field(default_factory=Part)
+
+    with pytest.raises(ConfigError, match="'part.undeclared_m' has no declared range"):
+        check_ranges(Whole())
+    assert numeric_fields(Whole())["part.declared"].valid == Range(0.0, 2.0)

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from kitti_layout import BASELINE, FX, R_CAM_VELO, H, W, make_odometry, projection, row
 
 import plvo.data.kitti as kitti_module
 from plvo.data.dataset import Dataset, iter_frames
@@ -18,44 +19,6 @@ from plvo.errors import CalibrationError, DatasetError
 from plvo.geometry import se3
 from plvo.geometry.camera import in_image, project
 from plvo.lidar.deskew import needs_deskew
-
-FX, CX, CY, BASELINE = 100.0, 20.0, 10.0, 0.5
-W, H = 40, 20
-# velodyne (x fwd, y left, z up) -> camera (x right, y down, z fwd)
-R_CAM_VELO = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
-
-
-def _row(values) -> str:
-    return " ".join(f"{v:.12e}" for v in np.asarray(values, dtype=float).reshape(-1))
-
-
-def _P(tx: float) -> np.ndarray:
-    return np.array([[FX, 0, CX, tx], [0, FX, CY, 0], [0, 0, 1, 0]])
-
-
-def make_odometry(root: Path, n: int = 5, seq: str = "07", with_tr: bool = True, cameras=(0, 1, 2)) -> Path:
-    """A tiny KITTI odometry sequence: n frames of W x H images, 100-point scans, poses moving 1 m along z."""
-    seq_dir = root / "sequences" / seq
-    T_velo = se3.from_rt(R_CAM_VELO, [0.0, -0.08, -0.27])
-    calib = [f"P{c}: {_row(_P(-FX * BASELINE if c in (1, 3) else 0.0))}" for c in range(4)]
-    if with_tr:
-        calib.append(f"Tr: {_row(T_velo[:3])}")
-    seq_dir.mkdir(parents=True)
-    (seq_dir / "calib.txt").write_text("\n".join(calib) + "\n")
-    (seq_dir / "times.txt").write_text("".join(f"{0.1 * k:.6e}\n" for k in range(n + 3)))
-    rng = np.random.default_rng(0)
-    for c in cameras:
-        (seq_dir / f"image_{c}").mkdir()
-    (seq_dir / "velodyne").mkdir()
-    for k in range(n):
-        for c in cameras:
-            img = np.full((H, W, 3) if c >= 2 else (H, W), 10 * k + c, np.uint8)
-            cv2.imwrite(str(seq_dir / f"image_{c}" / f"{k:06d}.png"), img)
-        rng.normal(0, 5, (100, 4)).astype(np.float32).tofile(seq_dir / "velodyne" / f"{k:06d}.bin")
-    poses = np.stack([se3.from_rt(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n + 3)])
-    write_kitti_poses(root / "poses" / f"{seq}.txt", poses)
-    return seq_dir
-
 
 # ---------------------------------------------------------------- real data
 
@@ -363,9 +326,9 @@ def make_raw(root: Path, motion, oxts_lag_ns=None) -> Path:
     date_dir = root / DATE
     drive_dir = date_dir / f"{DATE}_drive_{DRIVE}_sync"
     date_dir.mkdir(parents=True)
-    (date_dir / "calib_imu_to_velo.txt").write_text(f"calib_time: 25-May-2012\nR: {_row(np.eye(3))}\nT: 0 0 0\n")
-    (date_dir / "calib_velo_to_cam.txt").write_text(f"calib_time: x\nR: {_row(R_CAM_VELO)}\nT: 0 0 0\n")
-    cam = [f"P_rect_0{c}: {_row(_P(-FX * BASELINE if c == 1 else 0.0))}\nR_rect_0{c}: {_row(np.eye(3))}"
+    (date_dir / "calib_imu_to_velo.txt").write_text(f"calib_time: 25-May-2012\nR: {row(np.eye(3))}\nT: 0 0 0\n")
+    (date_dir / "calib_velo_to_cam.txt").write_text(f"calib_time: x\nR: {row(R_CAM_VELO)}\nT: 0 0 0\n")
+    cam = [f"P_rect_0{c}: {row(projection(-FX * BASELINE if c == 1 else 0.0))}\nR_rect_0{c}: {row(np.eye(3))}"
            for c in range(4)]
     (date_dir / "calib_cam_to_cam.txt").write_text("calib_time: 09-Jan-2012 13:57:47\n" + "\n".join(cam) + "\n")
     for sub in ("image_00/data", "velodyne_points/data", "oxts/data"):
