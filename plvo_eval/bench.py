@@ -28,7 +28,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,6 +38,9 @@ from plvo.recording import NullRecorder, Recorder, RunInfo
 from plvo.results import TimingResult
 from plvo.types import Calibration, FeatureSet, Frame
 from plvo_eval import provenance
+
+if TYPE_CHECKING:
+    from plvo.data.dataset import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +108,7 @@ class FrameList:
         return sum(f.image.nbytes + f.scan.nbytes for f in self.frames)
 
 
-def load_frames(dataset) -> tuple[FrameList, list[float]]:
+def load_frames(dataset: Dataset) -> tuple[FrameList, list[float]]:
     """Read every frame of a Dataset into memory -> (FrameList, seconds to load each frame)."""
     frames, seconds = [], []
     for i in range(len(dataset)):
@@ -325,7 +328,7 @@ class SystemRun:
         return out
 
 
-def bench_system(frames: FrameList, cfg: SystemConfig, recorder: Recorder | None = None,
+def bench_system(frames: FrameList | Dataset, cfg: SystemConfig, recorder: Recorder | None = None,
                  info: RunInfo | None = None, rrd: Path | None = None, setup_started: float | None = None
                  ) -> SystemRun:
     """Run the System over `frames` as plvo-viz does, timing it; `rrd`: the recording file to measure.
@@ -423,7 +426,7 @@ def system_figures(off: Sequence[SystemRun], on: Sequence[SystemRun]) -> dict:
     return out
 
 
-def deployed_figures(dataset, cfg: SystemConfig, recorder_factory: Callable[[int], tuple[Recorder, Path]],
+def deployed_figures(dataset: Dataset, cfg: SystemConfig, recorder_factory: Callable[[int], tuple[Recorder, Path]],
                      info: RunInfo | None, repeat: int = 1, reopen: Callable[[], Any] | None = None) -> dict:
     """What a user gets from plvo-viz: the given config (the defaults: concurrent workers), a Rerun recording on,
     frames read from disk as plvo-viz reads them (one ahead, in a thread), the workers' last results waited for;
@@ -509,7 +512,8 @@ def _rounded(value: float | None, digits: int = 3) -> float | None:
     return None if value is None else round(value, digits)
 
 
-def _deployed_run(reopen: Callable[[], Any], cfg: SystemConfig, recorder_factory, info: RunInfo | None,
+def _deployed_run(reopen: Callable[[], Any], cfg: SystemConfig,
+                  recorder_factory: Callable[[int], tuple[Recorder, Path]], info: RunInfo | None,
                   run: int) -> SystemRun:
     setup_started = time.perf_counter()
     from plvo.allocator import keep_freed_memory
@@ -555,7 +559,7 @@ class KissRun:
                 "setup_s": round(self.setup_s, 3)}
 
 
-def kiss_run(dataset, setup_started: float | None = None) -> KissRun | None:
+def kiss_run(dataset: Dataset, setup_started: float | None = None) -> KissRun | None:
     """KISS-ICP over the dataset's scans, read from disk alone inside the clock, its import and set-up outside (from
     `setup_started`, time.perf_counter(); default: this call) -> KissRun, or None when kiss-icp is not installed."""
     setup_started = time.perf_counter() if setup_started is None else setup_started
@@ -568,7 +572,7 @@ def kiss_run(dataset, setup_started: float | None = None) -> KissRun | None:
     return KissRun(len(dataset), out.wall_s, out.started_at - setup_started)
 
 
-def kiss_fps(dataset) -> float | None:
+def kiss_fps(dataset: Dataset) -> float | None:
     """KISS-ICP's frames a second over the dataset (as kiss_run: scans read inside the clock, set-up outside), or
     None when kiss-icp is not installed."""
     k = kiss_run(dataset)
@@ -635,7 +639,7 @@ def input_facts(frames: FrameList, load_s: Sequence[float], cfg: SystemConfig) -
             "has_ground_truth": frames.gt_T_world_cam is not None}
 
 
-def run_bench(dataset, cfg: SystemConfig, stages: frozenset[str], repeat: int = 1,
+def run_bench(dataset: Dataset, cfg: SystemConfig, stages: frozenset[str], repeat: int = 1,
               recorder_factory: Callable[[int], tuple[Recorder, Path]] | None = None,
               info: RunInfo | None = None, reopen: Callable[[], Any] | None = None) -> dict:
     """Time the selected stage groups (STAGE_GROUPS) on a Dataset -> the JSON-ready report (schema SCHEMA).

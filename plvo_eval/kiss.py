@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -39,6 +41,7 @@ from plvo.data.dataset import Dataset
 from plvo.errors import DatasetError, PlvoError
 from plvo.geometry import se3
 from plvo.lidar.deskew import azimuth_times
+from plvo.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +81,7 @@ class KissOutput:
         return self.finished_at - self.started_at
 
 
-def make_config(options: KissOptions):
+def make_config(options: KissOptions) -> Any:
     """KissOptions -> kiss_icp KISSConfig."""
     from kiss_icp.config import KISSConfig
 
@@ -91,7 +94,7 @@ def make_config(options: KissOptions):
     return config
 
 
-def scan_reader(dataset: Dataset):
+def scan_reader(dataset: Dataset) -> Callable[[int], np.ndarray]:
     """i -> the scan (N,4) of position i, read from disk alone where the dataset can (KITTI's `load_scan`): a
     lidar-only method has no use for the camera image that `dataset[i]` decodes too (on 04: 5.7-7.8 ms a frame
     read whole against 1.7 ms for the scan alone, beside KISS-ICP's ~66 ms); other datasets give the frame's scan."""
@@ -99,7 +102,7 @@ def scan_reader(dataset: Dataset):
     return lambda i: read(i)[0]
 
 
-def timed_scan_reader(dataset: Dataset):
+def timed_scan_reader(dataset: Dataset) -> Callable[[int], tuple[np.ndarray, np.ndarray | None]]:
     """i -> (scan (N,4), its returns' times (N,) in seconds after the frame's time, or None where the source says
     its scans are motion-compensated), read as `scan_reader` reads (the scan alone where the dataset can, with the
     times it records: `load_timed_scan`)."""
@@ -125,7 +128,7 @@ def raw_sweeps(dataset: Dataset) -> bool:
     return len(dataset) > 0 and timed_scan_reader(dataset)(0)[1] is not None
 
 
-def _frame_scan(frame) -> tuple[np.ndarray, np.ndarray | None]:
+def _frame_scan(frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
     return _with_times(frame.scan, frame.scan_time, frame.scan_compensated)
 
 
@@ -135,7 +138,8 @@ def _with_times(scan: np.ndarray, times: np.ndarray | None, compensated: bool) -
     return scan, (azimuth_times(scan) if times is None else np.asarray(times, np.float64))
 
 
-def _scan_points(dataset: Dataset, scan: np.ndarray, i: int, correct) -> np.ndarray:
+def _scan_points(dataset: Dataset, scan: np.ndarray, i: int,
+                 correct: Callable[[np.ndarray], np.ndarray] | None) -> np.ndarray:
     scan = np.asarray(scan)
     frame = dataset.frame_indices[i]
     if scan.ndim != 2 or scan.shape[1] < 3:
@@ -165,7 +169,7 @@ def lidar_to_cam0(lidar_poses: np.ndarray, T_cam0_velo: np.ndarray) -> np.ndarra
     return T_cam0_velo @ lidar_poses @ np.linalg.inv(T_cam0_velo)
 
 
-def kitti_corrector():
+def kitti_corrector() -> Callable[[np.ndarray], np.ndarray]:
     """kiss_icp's own KITTI scan correction (every return raised by its vertical-angle error), as a function of an
     (N,3) array, for KISS-ICP and KISS-SLAM alike."""
     from kiss_icp.pybind import kiss_icp_pybind

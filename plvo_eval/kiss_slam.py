@@ -43,6 +43,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -105,7 +106,7 @@ class KissSlamOutput:
         return len(self.closures)
 
 
-def make_config(options: KissSlamOptions):
+def make_config(options: KissSlamOptions) -> Any:
     """KissSlamOptions -> KISS-SLAM's default config (as its pipeline loads it without a file: the odometry voxel
     from max_range / 100) with the odometry's thread count set."""
     from kiss_slam.config import load_config
@@ -154,7 +155,7 @@ def _quiet() -> Iterator[None]:
                     log.debug("KISS-SLAM: %s", line.strip())
 
 
-def frame_poses(slam) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
+def frame_poses(slam: Any) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
     """A KissSLAM after its last scan -> (N,4,4) per-frame poses T_lidar0_lidar and local map id -> (first, last)
     frame, finishing the run as kiss_slam's SlamPipeline does (this changes `slam`: call it once)."""
     slam.generate_new_node()

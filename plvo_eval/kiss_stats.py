@@ -57,7 +57,8 @@ class _Probe:
         self.inner = inner
         self.seen: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
 
-    def align_points_to_map(self, points, voxel_map, initial_guess, max_correspondance_distance, kernel):
+    def align_points_to_map(self, points: np.ndarray, voxel_map: Any, initial_guess: np.ndarray,
+                            max_correspondance_distance: float, kernel: float) -> np.ndarray:
         pose = self.inner.align_points_to_map(points=points, voxel_map=voxel_map, initial_guess=initial_guess,
                                               max_correspondance_distance=max_correspondance_distance, kernel=kernel)
         self.seen = (voxel_map.point_cloud(), np.asarray(pose, np.float64), float(max_correspondance_distance),

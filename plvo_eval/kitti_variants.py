@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 from plvo.data.kitti import SYNTH_MARKER
 
 
-def variant(src_root: Path, seq: str, dst_root: Path, n_frames: int, image_of=None, scan_of=None,
-            keep=None) -> Path:
+def variant(src_root: Path, seq: str, dst_root: Path, n_frames: int, image_of: Callable[[int], int] | None = None,
+            scan_of: Callable[[int], int] | None = None, keep: Callable[[int], bool] | None = None) -> Path:
     """A KITTI root at dst_root holding frames 0..n_frames-1 of src_root's sequence seq, where frame i shows image
     image_of(i) and scan scan_of(i) of the source (identity by default); keep(i) False drops frame i (the later
     frames keep their numbers' times: a gap). Returns dst_root."""

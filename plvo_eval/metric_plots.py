@@ -9,7 +9,7 @@ angle that wraps, is the unbounded Euler angle and pitch, the one bounded to +-9
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -142,8 +142,8 @@ def plot_error_along_path(runs: Sequence[PlottedRun], path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def _three_panels(kind: str, runs: Sequence[PlottedRun], series, ylabels: Sequence[str], title: str, path: Path,
-                  origin: bool = False):
+def _three_panels(kind: str, runs: Sequence[PlottedRun], series: Callable[[np.ndarray], np.ndarray],
+                  ylabels: Sequence[str], title: str, path: Path, origin: bool = False) -> Path:
     """Three stacked panels over time (or frames): each run's truth (once per distinct truth) and estimate (SE(3)
     aligned, or with `origin` started at the truth's first pose); series(poses) -> (N,3) the values drawn."""
     plt = _pyplot()

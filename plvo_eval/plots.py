@@ -7,7 +7,10 @@ then use the short segments (10/20/40 m, every frame a start) and say so in thei
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,11 +18,15 @@ from plvo.atomic import atomic_path
 from plvo_eval.kitti_metric import DEVKIT_LENGTHS, SHORT_LENGTHS, SegmentErrors
 from plvo_eval.report import LABELS, Report, pooled_label
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
 SPEED_BINS_MPS = np.arange(2.0, 25.0, 2.0)  # devkit: bins centred every 2 m/s, +-2 m/s wide
 GT_STYLE = {"color": "black", "linewidth": 2.0, "label": "ground truth"}
 
 
-def _pyplot():
+def _pyplot() -> ModuleType:
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -28,7 +35,7 @@ def _pyplot():
     return plt
 
 
-def save_figure(fig, path: Path) -> Path:
+def save_figure(fig: Figure, path: Path) -> Path:
     """Save a matplotlib figure as PNG atomically and close it."""
     plt = _pyplot()
     with atomic_path(path) as tmp:
@@ -76,7 +83,8 @@ def plot_trajectories(report: Report, sequence: str, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def _binned(values: np.ndarray, keys: np.ndarray, centres, half_width: float) -> np.ndarray:
+def _binned(values: np.ndarray, keys: np.ndarray, centres: Sequence[float] | np.ndarray, half_width: float
+            ) -> np.ndarray:
     out = np.full(len(centres), np.nan)
     for k, c in enumerate(centres):
         mask = np.abs(keys - c) < half_width
@@ -85,7 +93,7 @@ def _binned(values: np.ndarray, keys: np.ndarray, centres, half_width: float) ->
     return out
 
 
-def _two_panels(title: str, xlabel: str):
+def _two_panels(title: str, xlabel: str) -> tuple[Figure, np.ndarray]:
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, ylabel in zip(axes, ("translation error [%]", "rotation error [deg/m]")):
@@ -96,7 +104,7 @@ def _two_panels(title: str, xlabel: str):
     return fig, axes
 
 
-def _log_if_spread(axes) -> None:
+def _log_if_spread(axes: Iterable[Axes]) -> None:
     """A log y axis on panels whose curves span more than 20x: one failing method (KISS-ICP on the synthetic
     town, ~100 %) would otherwise flatten every other curve onto zero."""
     for ax in axes:

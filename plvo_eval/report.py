@@ -25,7 +25,7 @@ grouped by set and each set is pooled apart as well ("all (development)", "all (
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,7 +81,7 @@ class Report:
     split_evaluations: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
-def _unique(values) -> tuple[str, ...]:
+def _unique(values: Iterable[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(values))
 
 
@@ -141,7 +141,8 @@ def incomplete(report: Report) -> dict[str, list[str]]:
             for s in report.settings}
 
 
-def table_values(report: Report, key: str, getter, aligned: bool = False) -> dict[str, dict[str, float | None]]:
+def table_values(report: Report, key: str, getter: Callable[[RelativeError], float], aligned: bool = False
+                 ) -> dict[str, dict[str, float | None]]:
     """setting -> {sequence: value or None, "all": pooled, "mean": mean of the sequences' values}; aligned: of the
     heading-aligned errors."""
     out: dict[str, dict[str, float | None]] = {}
@@ -348,7 +349,8 @@ def _path_length(report: Report, seq: str) -> float | None:
 
 
 def _md_table(
-    report: Report, title: str, values: dict[str, dict[str, float | None]], fmt: str, rows=None, first="Seq.",
+    report: Report, title: str, values: dict[str, dict[str, float | None]], fmt: str,
+    rows: Sequence[str] | None = None, first: str = "Seq.",
     pooled_rows: tuple[str, ...] = ("all",), missing: dict[str, list[str]] | None = None,
 ) -> list[str]:
     """One Markdown table; a pooled row's figure of a setting in `missing` (setting -> sequences it leaves out)

@@ -14,6 +14,8 @@ TRUE_LOOP_M and TRUE_LOOP_DEG of the truth: a revisit misjudged by more than tha
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 REVISIT_M, REVISIT_DEG = 5.0, 30.0
@@ -69,7 +71,8 @@ def detection_stats(gt: np.ndarray, kf_frame: dict[int, int], accepted: list[tup
             "n_revisit_keyframes_covered": len(covered)}
 
 
-def loop_edge_errors(gt: np.ndarray, kf_frame: dict[int, int], edges) -> list[dict[str, float | int | bool]]:
+def loop_edge_errors(gt: np.ndarray, kf_frame: dict[int, int], edges: Iterable[tuple[int, int, np.ndarray]]
+                     ) -> list[dict[str, float | int | bool]]:
     """Ground-truth poses (N,4,4) of the tracked camera by row, keyframe id -> row, loop edges (match id, query id,
     T_match_query (4,4)) -> per edge: the keyframes, their true distance apart and heading difference, the edge's
     error against the truth (m, deg) and whether it is true (see the module doc)."""

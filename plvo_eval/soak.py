@@ -16,9 +16,10 @@ import dataclasses
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +28,11 @@ from plvo.geometry import se3
 from plvo.recording import Recorder, RunInfo
 from plvo.results import CorrectionEvent, KeyframeResult, LoopResult, TimingResult, TrackingResult
 from plvo_eval import provenance
+
+if TYPE_CHECKING:
+    from plvo.data.dataset import Dataset
+    from plvo.runtime.system import System
+    from plvo.types import Frame
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +93,7 @@ class SoakTap:
         self.kf_frame.clear()
         self.inner.on_restart(info)
 
-    def on_frame(self, frame) -> None:
+    def on_frame(self, frame: Frame) -> None:
         self.inner.on_frame(frame)
 
     def on_stage(self, frame_index: int, result: Any) -> None:
@@ -121,8 +127,8 @@ class SoakTap:
         self.inner.close()
 
 
-def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, rrd: Path | None = None,
-             window: int = 100, progress=None) -> dict:
+def run_soak(dataset: Dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, rrd: Path | None = None,
+             window: int = 100, progress: Callable[[int], object] | None = None) -> dict:
     """Run the System over the dataset as plvo-viz does, through a SoakTap -> the soak report (schema SCHEMA)."""
     from plvo.runtime.system import System
 
@@ -152,8 +158,9 @@ def run_soak(dataset, config: SystemConfig, recorder: Recorder, info: RunInfo, r
     return report
 
 
-def _report(dataset, system, tap: SoakTap, poses: np.ndarray, t0: float, wall: float, finish_s: float,
+def _report(dataset: Dataset, system: System, tap: SoakTap, poses: np.ndarray, t0: float, wall: float, finish_s: float,
             window: int) -> dict:
+    assert system.map is not None  # run_soak read the poses from it (System.poses_cam0) before this
     gt = dataset.gt_T_world_cam  # of the camera the run used, by position in the selection
     index = {f: n for n, f in enumerate(dataset.frame_indices)}
     windows = _windows(tap, t0, gt, index, window)
@@ -189,7 +196,7 @@ def _report(dataset, system, tap: SoakTap, poses: np.ndarray, t0: float, wall: f
     return out
 
 
-def _windows(tap: SoakTap, t0: float, gt, index: dict[int, int], window: int) -> list[dict]:
+def _windows(tap: SoakTap, t0: float, gt: np.ndarray | None, index: dict[int, int], window: int) -> list[dict]:
     out = []
     ends = [t0] + tap.step_end
     samples = {s["frames"]: s for s in tap.samples}
@@ -207,7 +214,7 @@ def _windows(tap: SoakTap, t0: float, gt, index: dict[int, int], window: int) ->
     return out
 
 
-def _with_errors(correction: CorrectionEvent, tap: SoakTap, gt, index: dict[int, int]) -> dict:
+def _with_errors(correction: CorrectionEvent, tap: SoakTap, gt: np.ndarray | None, index: dict[int, int]) -> dict:
     """A correction event (as the soak's JSON holds it) with the tracked error of the frame before it was applied
     and of the frame after."""
     event = correction.as_dict()

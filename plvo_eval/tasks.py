@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from plvo.atomic import write_text_atomic
-from plvo.config import config_to_toml, load_config, merge, with_ablation
+from plvo.config import SystemConfig, config_to_toml, load_config, merge, with_ablation
 from plvo.data.dataset import Dataset, SourceOptions
 from plvo.data.registry import open_dataset, parse_frames
 from plvo.data.trajectory import read_kitti_poses, write_kitti_poses
@@ -163,7 +163,7 @@ class TaskResult:
 # ---------------------------------------------------------------- methods
 
 
-def plvo_config(spec: RunSpec):
+def plvo_config(spec: RunSpec) -> SystemConfig:
     """The resolved SystemConfig of a plvo spec: file (or defaults), then the ablation, then the overrides."""
     config = load_config(spec.config_path)
     if spec.ablation:
@@ -173,7 +173,7 @@ def plvo_config(spec: RunSpec):
     return config
 
 
-def run_pipeline(dataset: Dataset, config) -> MethodOutput:
+def run_pipeline(dataset: Dataset, config: SystemConfig) -> MethodOutput:
     """Dataset + SystemConfig -> plvo's cam0 poses (N,4,4) T_world_cam0 and per-stage timings; with ground truth
     its details say what each stage left of the heading and scale (plvo_eval.stage_drift) and how true each accepted
     loop is (plvo_eval.revisits.loop_edge_errors)."""

@@ -61,11 +61,13 @@ def _hash01(*ints: np.ndarray) -> np.ndarray:
     return (h & np.uint64(0xFFFF)).astype(np.float32) / 65536.0
 
 
-def _in_rect(u, v, u0, v0, u1, v1):
+def _in_rect(u: np.ndarray, v: np.ndarray, u0: np.ndarray | float, v0: np.ndarray | float, u1: np.ndarray | float,
+             v1: np.ndarray | float) -> np.ndarray:
     return (u >= u0) & (u < u1) & (v >= v0) & (v < v1)
 
 
-def _framed(u, v, u0, v0, u1, v1, glass, frame):
+def _framed(u: np.ndarray, v: np.ndarray, u0: np.ndarray | float, v0: np.ndarray | float, u1: np.ndarray | float,
+            v1: np.ndarray | float, glass: np.ndarray, frame: np.ndarray | float) -> np.ndarray:
     """Albedo of a framed pane: frame border and a central mullion around the glass."""
     border = (u - u0 < FRAME_W) | (u1 - u < FRAME_W) | (v - v0 < FRAME_W) | (v1 - v < FRAME_W)
     mullion = np.abs(u - 0.5 * (u0 + u1)) < 0.5 * FRAME_W
@@ -96,7 +98,8 @@ def shade_facade(p: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _shade_ground(p, u, v, col, cu, col_ok) -> np.ndarray:
+def _shade_ground(p: np.ndarray, u: np.ndarray, v: np.ndarray, col: np.ndarray, cu: np.ndarray, col_ok: np.ndarray
+                  ) -> np.ndarray:
     """Ground floor: a door, then shop windows under a sign board, or plain windows."""
     out = np.full(u.shape, np.nan, np.float32)
     key = p[KEY]

@@ -32,7 +32,7 @@ import numpy as np
 from plvo.errors import SynthError
 from plvo_synth import path as paths
 from plvo_synth import sensors
-from plvo_synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE
+from plvo_synth.mesh import EDGE_GEOMETRIC, EDGE_TEXTURE, Town
 from plvo_synth.render import Renderer, sun_direction
 from plvo_synth.textures import build_atlas
 from plvo_synth.town import build_town
@@ -131,12 +131,13 @@ def _write_text_files(seq_dir: Path, poses_file: Path, traj: Trajectory) -> None
     poses_file.write_text("".join(" ".join(f"{x:.9e}" for x in row) + "\n" for row in rows))
 
 
-def _plain(value):
+def _plain(value: np.generic) -> object:
     """JSON fallback for numpy scalars (settings may arrive as numpy integers or floats)."""
     return value.item()
 
 
-def _write_ground_truth(gt_dir: Path, settings: SynthSettings, traj: Trajectory, town, gains) -> None:
+def _write_ground_truth(gt_dir: Path, settings: SynthSettings, traj: Trajectory, town: Town,
+                        gains: np.ndarray) -> None:
     T_world_town = np.linalg.inv(traj.T_town_world)
     e = town.edges.reshape(-1, 3) @ T_world_town[:3, :3].T + T_world_town[:3, 3]
     np.save(gt_dir / "edges.npy", e.reshape(-1, 2, 3))
@@ -161,8 +162,8 @@ def _write_ground_truth(gt_dir: Path, settings: SynthSettings, traj: Trajectory,
     (gt_dir / "scene.json").write_text(json.dumps(scene, indent=1, sort_keys=True, default=_plain))
 
 
-def _render_frames(stage_seq: Path, settings: SynthSettings, traj: Trajectory, renderer: Renderer, gains,
-                   progress: Callable[[int, int], None] | None, frames: range | None = None) -> None:
+def _render_frames(stage_seq: Path, settings: SynthSettings, traj: Trajectory, renderer: Renderer,
+                   gains: np.ndarray, progress: Callable[[int, int], None] | None, frames: range | None = None) -> None:
     """Render `frames` (all by default) into the sequence folder; progress(done, total) counts over them."""
     T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
     frames = range(settings.n_frames) if frames is None else frames
@@ -245,7 +246,7 @@ def check_request(out_root: Path, sequence: str, settings: SynthSettings, overwr
     check_target(out_root, sequence, overwrite)
 
 
-def _town_of(settings: SynthSettings, traj: Trajectory):
+def _town_of(settings: SynthSettings, traj: Trajectory) -> Town:
     T_town_cam = traj.T_town_world[None] @ traj.T_world_cam
     lane = paths.LanePath(traj.route)
     s_end = float(traj.s[-1]) + ROUTE_LOOKAHEAD_M
@@ -307,8 +308,8 @@ def remove_stale_stages(folder: Path, prefix: str) -> list[Path]:
     return removed
 
 
-def generate_sequence(out_root, sequence: str = "00", n_frames: int = 300, seed: int = 0, speed_mps: float = 10.0,
-                      loop: bool = False, stops: bool = False, exposure_change: float = 0.0,
+def generate_sequence(out_root: str | Path, sequence: str = "00", n_frames: int = 300, seed: int = 0,
+                      speed_mps: float = 10.0, loop: bool = False, stops: bool = False, exposure_change: float = 0.0,
                       write_depth: bool = False, progress: Callable[[int, int], None] | None = None,
                       overwrite: bool = False) -> Path:
     """Write sequence NN of the synthetic town under out_root (KITTI odometry layout); returns out_root.

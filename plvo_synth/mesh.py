@@ -7,9 +7,11 @@ Straight edges (box edges, window outlines, markings) are collected alongside as
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from plvo_synth.facade import N_PARAMS, facade_rectangles
 
@@ -61,14 +63,15 @@ class MeshBuilder:
         self._edges.append(edges)
         self._edge_kind.append(np.full(len(edges), kind, np.int8))
 
-    def add_edge(self, a, b, kind: int = EDGE_GEOMETRIC) -> None:
+    def add_edge(self, a: npt.ArrayLike, b: npt.ArrayLike, kind: int = EDGE_GEOMETRIC) -> None:
         self.add_edges(np.array([a, b], np.float64), kind)
 
     def add_facade(self, row: np.ndarray) -> int:
         self._facades.append(np.asarray(row, np.float64))
         return len(self._facades) - 1
 
-    def add_quad(self, corner, eu, ev, material: int, tint: float = 1.0, facade: int = -1, origin=None) -> None:
+    def add_quad(self, corner: npt.ArrayLike, eu: npt.ArrayLike, ev: npt.ArrayLike, material: int, tint: float = 1.0,
+                 facade: int = -1, origin: npt.ArrayLike | None = None) -> None:
         """Quad corner, corner+eu, corner+eu+ev, corner+ev; texture u along eu, v along ev from `origin`."""
         corner, eu, ev = (np.asarray(x, np.float64) for x in (corner, eu, ev))
         verts = np.array([corner, corner + eu, corner + eu + ev, corner + ev])
@@ -77,7 +80,8 @@ class MeshBuilder:
         frame = np.concatenate([o, au, av])
         self._push(verts, _QUAD_TRIS, np.stack([frame, frame]), material, tint, facade)
 
-    def add_box(self, lo, hi, material: int, tint: float = 1.0, facades=None, top_material=None,
+    def add_box(self, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, material: int,
+                tint: float = 1.0, facades: Sequence[int] | None = None, top_material: int | None = None,
                 edges: bool = True) -> None:
         """Axis-aligned box without a bottom; walls -y, +x, +y, -x get facades[i] (row index or -1), u along the
         wall from its left foot seen from outside. Boxes are meshed together, vectorised, in build()."""
@@ -85,7 +89,8 @@ class MeshBuilder:
         top = material if top_material is None else top_material
         self._boxes.append((*lo, *hi, material, top, tint, *fac, float(edges)))
 
-    def add_blob(self, verts: np.ndarray, tris: np.ndarray, material: int, tint: float, origin) -> None:
+    def add_blob(self, verts: np.ndarray, tris: np.ndarray, material: int, tint: float,
+                 origin: npt.ArrayLike) -> None:
         """Closed mesh with per-triangle texture frames (u horizontal, v up the slope)."""
         verts, tris = np.asarray(verts, np.float64), np.asarray(tris)
         p = verts[tris]
@@ -104,18 +109,19 @@ class MeshBuilder:
         self._push(np.asarray(verts, np.float64), np.asarray(tris), np.asarray(frames, np.float64), material, tint,
                    facade)
 
-    def add_facade_edges(self, corner, along, fac: int) -> None:
+    def add_facade_edges(self, corner: npt.ArrayLike, along: npt.ArrayLike, fac: int) -> None:
         """The window, door and sign outlines of facade row `fac` on a wall from `corner` along `along`."""
         self._facade_edges(np.asarray(corner, np.float64), np.asarray(along, np.float64), fac)
 
-    def _push(self, verts, tris, frames, material, tint, facade) -> None:
+    def _push(self, verts: np.ndarray, tris: np.ndarray, frames: np.ndarray, material: int, tint: float,
+              facade: int) -> None:
         self._verts.append(verts)
         self._tris.append(tris + self._n_verts)
         self._n_verts += len(verts)
         self._frames.append(frames)
         self._scalars.append(np.array([[len(tris), material, tint, facade]], np.float64))
 
-    def _facade_edges(self, corner, along, fac: int) -> None:
+    def _facade_edges(self, corner: np.ndarray, along: np.ndarray, fac: int) -> None:
         rects = facade_rectangles(self._facades[fac])
         if not len(rects):
             return

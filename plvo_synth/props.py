@@ -8,6 +8,7 @@ from the street towards the side being furnished.
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from plvo_synth.mesh import EDGE_TEXTURE, MeshBuilder
 from plvo_synth.textures import MATERIAL_ID, SIGN_MATERIALS
@@ -17,12 +18,13 @@ MARK_Z = 0.01  # road paint floats 1 cm above the asphalt so the ray caster sees
 KERB_H = 0.15
 
 
-def _box_at(b: MeshBuilder, centre_xy, half_xy, z0, z1, material, tint=1.0, top=None) -> None:
+def _box_at(b: MeshBuilder, centre_xy: npt.ArrayLike, half_xy: npt.ArrayLike, z0: float, z1: float, material: int,
+            tint: float = 1.0, top: int | None = None) -> None:
     c, h = np.asarray(centre_xy, float), np.abs(np.asarray(half_xy, float))
     b.add_box([c[0] - h[0], c[1] - h[1], z0], [c[0] + h[0], c[1] + h[1], z1], material, tint, top_material=top)
 
 
-def lamp_post(b: MeshBuilder, p, n, rng: np.random.Generator) -> None:
+def lamp_post(b: MeshBuilder, p: np.ndarray, n: np.ndarray, rng: np.random.Generator) -> None:
     """A lamp post at p (on the pavement) with its arm reaching over the road (towards -n)."""
     h = rng.uniform(6.0, 8.0)
     _box_at(b, p, (0.09, 0.09), KERB_H, h, M["metal"], rng.uniform(0.6, 1.2))
@@ -34,7 +36,7 @@ def lamp_post(b: MeshBuilder, p, n, rng: np.random.Generator) -> None:
             M["metal"], 1.8)
 
 
-def sign_post(b: MeshBuilder, p, d, rng: np.random.Generator) -> None:
+def sign_post(b: MeshBuilder, p: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> None:
     """A sign post at p whose plate faces traffic coming along -d (the plate's front looks along -d)."""
     d = np.asarray(d, float)
     side = np.array([-d[1], d[0]])
@@ -59,7 +61,7 @@ def _icosphere() -> tuple[np.ndarray, np.ndarray]:
     # One subdivision: 80 faces, round enough for a crown.
     verts, cache, faces = list(v), {}, []
 
-    def mid(i, j):
+    def mid(i: int, j: int) -> int:
         key = (min(i, j), max(i, j))
         if key not in cache:
             verts.append((verts[i] + verts[j]) / 2)
@@ -76,7 +78,7 @@ def _icosphere() -> tuple[np.ndarray, np.ndarray]:
 _SPHERE = _icosphere()
 
 
-def tree(b: MeshBuilder, p, rng: np.random.Generator) -> None:
+def tree(b: MeshBuilder, p: np.ndarray, rng: np.random.Generator) -> None:
     """A tree at p: a square trunk and a lumpy crown."""
     trunk_h = rng.uniform(2.2, 3.2)
     _box_at(b, p, (0.15, 0.15), KERB_H, trunk_h + 0.5, M["bark"], rng.uniform(0.7, 1.2))
@@ -87,7 +89,7 @@ def tree(b: MeshBuilder, p, rng: np.random.Generator) -> None:
     b.add_blob(lumps + centre, faces, M["foliage"], rng.uniform(0.7, 1.2), centre)
 
 
-def parked_car(b: MeshBuilder, c, d, rng: np.random.Generator) -> None:
+def parked_car(b: MeshBuilder, c: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> None:
     """A parked car (boxes) centred at c, its length along d."""
     d = np.abs(np.asarray(d, float))
     side = 1.0 - d
@@ -100,7 +102,7 @@ def parked_car(b: MeshBuilder, c, d, rng: np.random.Generator) -> None:
             _box_at(b, np.asarray(c) + d * sa + side * sb, d * 0.32 + side * 0.12, 0.0, 0.62, M["tyre"], 1.0)
 
 
-def _paint_rect(b: MeshBuilder, centre, d, length, width) -> None:
+def _paint_rect(b: MeshBuilder, centre: np.ndarray, d: np.ndarray, length: float, width: float) -> None:
     """Road paint: a length x width rectangle centred at `centre`, its length along unit d."""
     d = np.asarray(d, float)
     side = np.array([-d[1], d[0]])
@@ -113,7 +115,8 @@ def _paint_rect(b: MeshBuilder, centre, d, length, width) -> None:
         b.add_edge(pts[k], pts[(k + 1) % 4], EDGE_TEXTURE)
 
 
-def street_paint(b: MeshBuilder, a, e, road_half: float, rng: np.random.Generator) -> None:
+def street_paint(b: MeshBuilder, a: npt.ArrayLike, e: npt.ArrayLike, road_half: float,
+                 rng: np.random.Generator) -> None:
     """Markings of one street leg from crossing a to crossing e (centre line points): dashes, stop lines, zebras."""
     a, e = np.asarray(a, float), np.asarray(e, float)
     length = float(np.linalg.norm(e - a))

@@ -67,7 +67,8 @@ class Renderer:
         self._noise = bank_rng.standard_normal(width * height + NOISE_BANK_EXTRA, dtype=np.float32)
         self._noise *= np.float32(READ_NOISE_GREY)
 
-    def _cast(self, dirs: np.ndarray, T_town_sensor: np.ndarray):
+    def _cast(self, dirs: np.ndarray, T_town_sensor: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """One cast_rays call -> hit distance (in units of |dir|), triangle ids, barycentrics, (N,6) rays."""
         buf = np.empty((len(dirs), 6), np.float32)
         buf[:, :3] = T_town_sensor[:3, 3]
@@ -77,7 +78,8 @@ class Renderer:
         ans = self.scene.cast_rays(o3d.core.Tensor.from_numpy(buf))
         return ans["t_hit"].numpy(), ans["primitive_ids"].numpy(), ans["primitive_uvs"].numpy(), buf
 
-    def _surface(self, pid: np.ndarray, bary: np.ndarray):
+    def _surface(self, pid: np.ndarray, bary: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Hits -> material, facade row (-1: none), tint, texture coordinates u, v (m)."""
         tint, u0, du1, du2, v0, dv1, dv2 = (np.take(c, pid) for c in self._tri_cols)
         b1, b2 = np.ascontiguousarray(bary[:, 0]), np.ascontiguousarray(bary[:, 1])
@@ -88,7 +90,8 @@ class Renderer:
         """(T,) signed distance of the sensor from each triangle's plane (the side it sees)."""
         return np.einsum("tj,tj->t", self.town.tri_normal, (origin[None, :] - self._tri_a).astype(np.float32))
 
-    def _albedo(self, mat, fac, tint, u, v, footprint) -> tuple[np.ndarray, np.ndarray]:
+    def _albedo(self, mat: np.ndarray, fac: np.ndarray, tint: np.ndarray, u: np.ndarray, v: np.ndarray,
+                footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N,) albedo and facade override (NaN where the wall's own material shows)."""
         tex = self.atlas.sample(mat, u, v, footprint)
         albedo = self.atlas.mat_albedo[mat] * tint * tex

@@ -19,6 +19,8 @@ VIEW_RADIUS_M = 150.0  # the lidar sees 80 m; the camera sees buildings further 
 SIDEWALK_M = 3.5
 CORNER_SKIP_M = 17.0  # rows along y start this far in, clear of the rows along x (buildings <= 16 m deep)
 KERB_H = props.KERB_H
+# a row of buildings along a block's side: (start, along t, inward n, length, street-facing wall, skip at its ends)
+_Row = tuple[np.ndarray, np.ndarray, np.ndarray, float, int, float]
 
 
 def blocks_near(grid: StreetGrid, route_xy: np.ndarray, radius: float = VIEW_RADIUS_M) -> list[tuple[int, int]]:
@@ -37,7 +39,7 @@ def blocks_near(grid: StreetGrid, route_xy: np.ndarray, radius: float = VIEW_RAD
     return out
 
 
-def _rows(x0: float, x1: float, y0: float, y1: float):
+def _rows(x0: float, x1: float, y0: float, y1: float) -> list[_Row]:
     """The four building rows of a block: (start, along t, inward n, length, index of the street-facing wall)."""
     e = ROAD_HALF_WIDTH_M + SIDEWALK_M
     lx, ly = x1 - x0 - 2 * e, y1 - y0 - 2 * e
@@ -49,7 +51,8 @@ def _rows(x0: float, x1: float, y0: float, y1: float):
     ]
 
 
-def _building(b: MeshBuilder, a, t, n, u0, u1, wall: int, rng: np.random.Generator) -> None:
+def _building(b: MeshBuilder, a: np.ndarray, t: np.ndarray, n: np.ndarray, u0: float, u1: float, wall: int,
+              rng: np.random.Generator) -> None:
     setback = 0.0 if rng.random() < 0.5 else rng.uniform(0.5, 4.0)
     depth, height = rng.uniform(10.0, 16.0), rng.uniform(6.0, 24.0)
     p0, p1 = a + u0 * t + setback * n, a + u1 * t + (setback + depth) * n
@@ -74,7 +77,7 @@ def _building(b: MeshBuilder, a, t, n, u0, u1, wall: int, rng: np.random.Generat
         b.add_box([*np.minimum(q0, q1), z0], [*np.maximum(q0, q1), z1], M["ledge"], rng.uniform(0.8, 1.1))
 
 
-def _row_buildings(b: MeshBuilder, row, rng: np.random.Generator) -> None:
+def _row_buildings(b: MeshBuilder, row: _Row, rng: np.random.Generator) -> None:
     a, t, n, length, wall, skip = row
     u = skip
     while u < length - skip - 6.0:
@@ -88,7 +91,7 @@ def _row_buildings(b: MeshBuilder, row, rng: np.random.Generator) -> None:
         u += w
 
 
-def _row_furniture(b: MeshBuilder, row, rng: np.random.Generator) -> None:
+def _row_furniture(b: MeshBuilder, row: _Row, rng: np.random.Generator) -> None:
     a, t, n, length, _, _ = row
     kerb = a - SIDEWALK_M * n  # the kerb line, in row coordinates u along t
     lamps = np.arange(10.0, length - 8.0, rng.uniform(25.0, 35.0))

@@ -89,7 +89,7 @@ def is_current(root: Path, job: TwinJob) -> bool:
     return data.get("twin_version") == TWIN_VERSION and data.get("settings") == wanted
 
 
-def _run_local(job: TwinJob, root: str, progress_queue=None) -> TwinDone:
+def _run_local(job: TwinJob, root: str, progress_queue: queue.Queue[tuple[str, int]] | None = None) -> TwinDone:
     """In a worker: generate one twin, reporting (sequence, frames done) to the queue."""
     start = time.perf_counter()
     n = load_followed(job.settings.follow, job.settings.frames).n_frames
@@ -140,7 +140,7 @@ def ensure_twins(jobs: Sequence[TwinJob], root: str | Path, workers: int = 1, ra
     elif workers <= 1 or len(todo) <= 1:
         done_before = 0
         for k in todo:
-            def one(done: int, n: int, base=done_before) -> None:
+            def one(done: int, n: int, base: int = done_before) -> None:
                 if progress:
                     progress(base + done, total)
             start = time.perf_counter()
@@ -156,7 +156,9 @@ def ensure_twins(jobs: Sequence[TwinJob], root: str | Path, workers: int = 1, ra
     return [results[k] for k in range(len(jobs))]
 
 
-def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, TwinDone]:
+def _processes(jobs: Sequence[TwinJob], todo: Sequence[int], root: str, workers: int,
+               progress: Callable[[int, int], None] | None, total: int, notify: Callable[[TwinDone], None]
+               ) -> dict[int, TwinDone]:
     out: dict[int, TwinDone] = {}
     with multiprocessing.get_context("spawn").Manager() as manager:
         q = manager.Queue()
@@ -181,7 +183,9 @@ def _processes(jobs, todo, root, workers, progress, total, notify) -> dict[int, 
     return out
 
 
-def _ray(jobs, todo, frames, root, address, workers, progress, total, notify) -> dict[int, TwinDone]:
+def _ray(jobs: Sequence[TwinJob], todo: Sequence[int], frames: dict[int, int], root: str, address: str, workers: int,
+         progress: Callable[[int, int], None] | None, total: int, notify: Callable[[TwinDone], None]
+         ) -> dict[int, TwinDone]:
     out: dict[int, TwinDone] = {}
     done_frames = 0
     follows = sorted({jobs[k].settings.follow for k in todo})

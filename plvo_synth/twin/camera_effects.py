@@ -115,7 +115,7 @@ class CameraRealism:
             _number(f"camera.{name}", getattr(self, name), a, b)
 
 
-def _number(name: str, value, lo: float, hi: float) -> float:
+def _number(name: str, value: object, lo: float, hi: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not lo <= float(value) <= hi:
         raise SynthError(f"realism {name} = {value!r}: expected a number in [{lo}, {hi}]")

@@ -181,7 +181,7 @@ def build_twin(settings: TwinSettings, sequence: str, path: FollowedPath | None 
                 realism.compensated(raw_drive), sweep_s)
 
 
-def _box_2d(ids: np.ndarray, mover_id: int):
+def _box_2d(ids: np.ndarray, mover_id: int) -> tuple[list[int] | None, int]:
     v, u = np.nonzero(ids == mover_id)
     if not len(u):
         return None, 0
@@ -391,7 +391,7 @@ def settings_key(sequence: str, settings: TwinSettings) -> str:
     return hashlib.sha1(text.encode()).hexdigest()
 
 
-def generate_twin(out_root, sequence: str, settings: TwinSettings,
+def generate_twin(out_root: str | Path, sequence: str, settings: TwinSettings,
                   progress: Callable[[int, int], None] | None = None, overwrite: bool = False) -> Path:
     """Write twin NN under out_root (KITTI odometry layout), staged beside it and renamed in when complete; a stage
     of the same settings left by a stopped run is carried on."""

@@ -17,6 +17,7 @@ the ground as the twins did before (the atlas's tiles and the edge line), pixel 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,7 +86,7 @@ class GroundRealism:
         _check("joint_m", self.joint_m, 0.0, 0.05)
 
 
-def _check(name: str, value, lo: float, hi: float) -> None:
+def _check(name: str, value: object, lo: float, hi: float) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
         raise SynthError(f"scenery.ground.{name} = {value!r}: expected a number in [{lo}, {hi}]")
 
@@ -98,13 +99,14 @@ REALISTIC_GROUND = GroundRealism()
 # ---------------------------------------------------------------------------------------------- filtered patterns
 
 
-def pulse_train(x: np.ndarray, period, width, filter_m) -> np.ndarray:
+def pulse_train(x: np.ndarray, period: np.ndarray | float, width: np.ndarray | float, filter_m: np.ndarray | float
+                ) -> np.ndarray:
     """Share of [x - f/2, x + f/2] (f = filter_m) where (x mod period) < width: a dash pattern box-filtered over
     a pixel's footprint (a point sample where f is 0)."""
     x = np.asarray(x, np.float64)
     f = np.asarray(filter_m, np.float64)
 
-    def integral(y):
+    def integral(y: np.ndarray) -> np.ndarray:
         return np.floor(y / period) * width + np.minimum(np.mod(y, period), width)
 
     point = (np.mod(x, period) < width).astype(np.float64)
@@ -113,7 +115,7 @@ def pulse_train(x: np.ndarray, period, width, filter_m) -> np.ndarray:
     return np.where(f > 1e-6, box, point)
 
 
-def band(x: np.ndarray, lo, hi, filter_m) -> np.ndarray:
+def band(x: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float, filter_m: np.ndarray | float) -> np.ndarray:
     """Share of [x - f/2, x + f/2] inside [lo, hi]: one line across the road, box-filtered."""
     x = np.asarray(x, np.float64)
     f = np.maximum(np.asarray(filter_m, np.float64), 1e-6)
@@ -152,7 +154,7 @@ class GroundShader:
         self._dash = np.array(settings.dash_m)
         self._period = self._dash + np.array(settings.gap_m)
 
-    def _texture(self, mat: int, u, v, footprint, contrast: float) -> np.ndarray:
+    def _texture(self, mat: int, u: np.ndarray, v: np.ndarray, footprint: np.ndarray, contrast: float) -> np.ndarray:
         """The material's tile at (u, v), its contrast scaled; with `aperiodic` the tile shifted by a seeded
         offset in each TEXTURE_CELL_M cell, blended across cells (see _blended), so it repeats nowhere."""
         mats = np.full(len(u), mat, np.int32)
@@ -162,7 +164,8 @@ class GroundShader:
             a = self.atlas.sample(mats, u, v, footprint) - 1.0
         return (1.0 + np.float32(contrast) * a).astype(np.float32)
 
-    def _blended(self, lookup, x, y, cell: float, tag: int) -> np.ndarray:
+    def _blended(self, lookup: Callable[[np.ndarray, np.ndarray], np.ndarray], x: np.ndarray, y: np.ndarray,
+                 cell: float, tag: int) -> np.ndarray:
         """A zero-mean periodic pattern made to repeat nowhere: each cell of a grid of `cell` metres reads it at
         its own seeded offset, and a point blends the four nearest cells' readings with bilinear weights, divided
         by the weights' norm so that the spread stays the pattern's (the cells' readings are uncorrelated)."""
@@ -191,7 +194,8 @@ class GroundShader:
         return (1.0 + self.s.wear_contrast * field).astype(np.float32)
 
     def markings(self, s_along: np.ndarray, across: np.ndarray, inside: np.ndarray, zone: np.ndarray,
-                 on_path: np.ndarray, half_width: np.ndarray, fw_across, fw_along) -> np.ndarray:
+                 on_path: np.ndarray, half_width: np.ndarray, fw_across: np.ndarray | float,
+                 fw_along: np.ndarray | float) -> np.ndarray:
         """(N,) share of each pixel covered by a road marking: the edge line and the dashed lane lines."""
         st = self.s
         cover = band(inside, -EDGE_LINE[1], -EDGE_LINE[0], fw_across)
@@ -212,7 +216,8 @@ class GroundShader:
                 j += 1
         return cover
 
-    def pavers(self, s_along: np.ndarray, across: np.ndarray, fw_across, fw_along) -> np.ndarray:
+    def pavers(self, s_along: np.ndarray, across: np.ndarray, fw_across: np.ndarray | float,
+               fw_along: np.ndarray | float) -> np.ndarray:
         """(N,) shade of a paved surface: stones in running bond along the road, joints darker."""
         a, b = self.s.paver_m
         row = np.floor(across / b)
@@ -227,7 +232,8 @@ class GroundShader:
             * (1.0 - pulse_train(x + 0.5 * jw, a, jw, fw_along))
         return stone * (1.0 - joint) + JOINT_GREY * joint
 
-    def albedo(self, xy, d, k, u, v, footprint, pixel_m) -> np.ndarray:
+    def albedo(self, xy: np.ndarray, d: np.ndarray, k: np.ndarray, u: np.ndarray, v: np.ndarray, footprint: np.ndarray,
+               pixel_m: np.ndarray) -> np.ndarray:
         """Camera hits on the ground -> (N,) albedo. d, k: distance to and index of the nearest road sample;
         footprint: the pixel's size along the ground (m, foreshortened), pixel_m: across the line of sight."""
         lay, atlas = self.layout, self.atlas
@@ -253,7 +259,7 @@ class GroundShader:
         out = np.where((inside >= 0.0) & (inside < KERB_M), kerb, out)
         return out.astype(np.float32)
 
-    def reflectance(self, xy, d, k) -> np.ndarray:
+    def reflectance(self, xy: np.ndarray, d: np.ndarray, k: np.ndarray) -> np.ndarray:
         """Lidar hits on the ground -> (N,) reflectance: asphalt, paint, kerb, verge (point samples)."""
         lay, atlas = self.layout, self.atlas
         hw = lay.half_width[k]

@@ -153,7 +153,8 @@ class Layout:
                 zone_of_cell[k] = ZONE_ID["city"] if r < (0.7 if v < 8.0 else 0.45) else ZONE_ID["residential"]
         return zone_of_cell[inv]
 
-    def _crossings(self, pts, tang, zone):
+    def _crossings(self, pts: np.ndarray, tang: np.ndarray, zone: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Crossing streets: at most one per CROSS_CELL_M square the path runs through, at the path sample nearest
         the square's seeded point, perpendicular to the path there, flat at the crossing's height."""
         cells = np.floor(pts[:, :2] / CROSS_CELL_M).astype(np.int64)

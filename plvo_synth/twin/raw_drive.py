@@ -364,7 +364,8 @@ def check_raw_target(out_root: Path, plan: RawTwinPlan, overwrite: bool) -> None
         raise SynthError(f"{target}: exists already (pass --overwrite to replace it)")
 
 
-def check_raw_request(out_root, root, drive_name: str, settings: TwinSettings, overwrite: bool = False) -> RawTwinPlan:
+def check_raw_request(out_root: str | Path, root: str | Path, drive_name: str, settings: TwinSettings,
+                      overwrite: bool = False) -> RawTwinPlan:
     """The raw twin's plan, or SynthError naming the file, range or setting that is wrong; writes nothing."""
     settings.check()
     plan = plan_raw_twin(root, drive_name, settings.frames)
@@ -372,7 +373,7 @@ def check_raw_request(out_root, root, drive_name: str, settings: TwinSettings, o
     return plan
 
 
-def generate_raw_twin(out_root, root, drive_name: str, settings: TwinSettings,
+def generate_raw_twin(out_root: str | Path, root: str | Path, drive_name: str, settings: TwinSettings,
                       progress: Callable[[int, int], None] | None = None, overwrite: bool = False,
                       plan: RawTwinPlan | None = None) -> Path:
     """Write the twin of raw drive `drive_name` (found under `root`) under out_root in KITTI's raw layout, staged

@@ -159,7 +159,7 @@ class Realism:
         return asdict(self)
 
 
-def _check_range(name: str, value, lo: float, hi: float) -> None:
+def _check_range(name: str, value: object, lo: float, hi: float) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not lo <= float(value) <= hi:
         raise SynthError(f"realism {name} = {value!r}: expected a number in [{lo}, {hi}]")

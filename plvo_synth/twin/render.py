@@ -78,7 +78,8 @@ class TwinRenderer(Renderer):
         cloud = np.clip(c * 0.35, 0.0, 0.5) * np.clip(up * 4.0, 0.0, 1.0)
         return (base + glow) * (1.0 - cloud) + cloud * 0.97
 
-    def _ground(self, xy: np.ndarray, u, v, footprint, lidar: bool = False, pixel_m=None):
+    def _ground(self, xy: np.ndarray, u: np.ndarray, v: np.ndarray, footprint: np.ndarray | None, lidar: bool = False,
+                pixel_m: np.ndarray | None = None) -> np.ndarray:
         """Ground hits (K,2) -> albedo (or lidar reflectance): road, edge line, verge by distance to the road.
         pixel_m: a camera pixel's size across the line of sight (m), which the realistic ground's markings are
         filtered over (footprint: along the ground, foreshortened)."""
@@ -86,6 +87,7 @@ class TwinRenderer(Renderer):
         if self._ground_shader is not None:
             if lidar:
                 return self._ground_shader.reflectance(xy, d, k)
+            assert footprint is not None  # a camera hit's footprint: only the lidar's hits come without one
             return self._ground_shader.albedo(xy, d, k, u, v, footprint,
                                               footprint if pixel_m is None else pixel_m)
         hw = self.layout.half_width[k]
@@ -99,6 +101,7 @@ class TwinRenderer(Renderer):
             a_road, a_verge = self.atlas.mat_lidar[road_mat], self.atlas.mat_lidar[verge]
             line_v, kerb_v = self.atlas.mat_lidar[M["marking"]], self.atlas.mat_lidar[M["kerb"]]
         else:
+            assert footprint is not None  # as above
             a_road = self.atlas.mat_albedo[road_mat] * self.atlas.sample(road_mat, u, v, footprint)
             a_verge = self.atlas.mat_albedo[verge] * self.atlas.sample(verge, u, v, footprint)
             line_v = self.atlas.mat_albedo[M["marking"]] * np.ones(len(d), np.float32)
@@ -124,7 +127,8 @@ class TwinRenderer(Renderer):
     # ---------------------------------------------------------------- camera
 
     def render_twin(self, T_town_cam: np.ndarray, time: float, rng: np.random.Generator,
-                    camera: CameraRealism = IDEAL_CAMERA, poses: PoseInterpolator | None = None, seed: int = 0):
+                    camera: CameraRealism = IDEAL_CAMERA, poses: PoseInterpolator | None = None, seed: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """-> image (H,W) uint8, depth (H,W) float32 (inf: sky), mover ids (H,W) uint16, shadow edges (H,W) bool,
         gain (float). camera: what the camera makes of the scene (twin.camera_effects; IDEAL_CAMERA: the old
         images); poses: the camera's path, which motion blur over camera.shutter_s needs; seed: the twin's (the
@@ -253,8 +257,9 @@ class TwinRenderer(Renderer):
         kept = np.round(np.clip(refl[keep], 0.0, 0.99), 2)
         return np.concatenate([pts, kept[:, None]], axis=1).astype(np.float32), ids[keep]
 
-    def _degrade(self, fx: LidarEffects, keep, stat, mv, mat, tint, ground, mmat, mtint, refl, rng_m,
-                 effects_rng: np.random.Generator) -> np.ndarray:
+    def _degrade(self, fx: LidarEffects, keep: np.ndarray, stat: np.ndarray, mv: np.ndarray, mat: np.ndarray,
+                 tint: np.ndarray, ground: np.ndarray, mmat: np.ndarray, mtint: np.ndarray, refl: np.ndarray,
+                 rng_m: np.ndarray, effects_rng: np.random.Generator) -> np.ndarray:
         """The returns that a real sensor would lose dropped from `keep`; returns from tree crowns pushed into
         them (rng_m changed in place)."""
         material = np.full(len(refl), -1, np.int32)

@@ -22,7 +22,7 @@ import numpy as np
 from plvo_synth.mesh import MeshBuilder, Town
 from plvo_synth.textures import MATERIAL_ID
 from plvo_synth.twin import shapes
-from plvo_synth.twin.layout import ZONE_ID, ZONES, Layout
+from plvo_synth.twin.layout import ZONE_ID, ZONES, Layout, Zone
 from plvo_synth.twin.scenery_realism import REALISTIC_SCENERY, SceneryRealism
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,7 @@ def _ground(b: MeshBuilder, layout: Layout) -> int:
     return len(tris)
 
 
-def _lattice(layout: Layout, kind: Kind, seed: int):
+def _lattice(layout: Layout, kind: Kind, seed: int) -> list[tuple[int, int]]:
     """Cells (ix, iy) of kind's lattice whose seeded point lies within reach of a road's object band."""
     reach = max(ZONES, key=lambda z: z.half_width).half_width + kind.offset[1] + kind.spacing
     lo = np.floor((layout.lo - reach) / kind.spacing).astype(int)
@@ -130,7 +130,8 @@ def _lattice(layout: Layout, kind: Kind, seed: int):
     return [(int(a), int(c)) for a, c in zip(ix.ravel()[ok], iy.ravel()[ok])]
 
 
-def _proposal(layout: Layout, kind: Kind, seed: int, ix: int, iy: int):
+def _proposal(layout: Layout, kind: Kind, seed: int, ix: int, iy: int
+              ) -> tuple[np.random.Generator, Zone, int, np.ndarray] | None:
     """A cell's proposal: (rng, zone, road sample index, unit vector road->object, base point on the road edge)."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, kind.tag, ix + (1 << 20), iy + (1 << 20)]))
     q = (np.array([ix, iy]) + rng.uniform(0.0, 1.0, 2)) * kind.spacing
@@ -190,8 +191,8 @@ def _clear(layout: Layout, corners: np.ndarray, margin: float) -> bool:
     return bool(layout.clearance(pts).min() >= margin)
 
 
-def _one(b, layout: Layout, occ: _Occupancy, kind: Kind, rng, zone, k: int, away: np.ndarray, look: _Look,
-         scenery: SceneryRealism) -> bool:
+def _one(b: MeshBuilder, layout: Layout, occ: _Occupancy, kind: Kind, rng: np.random.Generator, zone: Zone, k: int,
+         away: np.ndarray, look: _Look, scenery: SceneryRealism) -> bool:
     edge = layout.xy[k] + away * layout.half_width[k]  # the road edge on this side
     tangent = layout.tangent[k]
     if tangent[0] < 0.0 or (tangent[0] == 0.0 and tangent[1] < 0.0):

@@ -7,7 +7,10 @@ and the ground height `z0` under them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+import numpy.typing as npt
 
 from plvo_synth.facade import GROUND_H, random_facade
 from plvo_synth.mesh import EDGE_GEOMETRIC, MeshBuilder
@@ -18,7 +21,7 @@ M = MATERIAL_ID
 LEAF_SIZE_SIGMA = 0.3  # spread of leaf sizes (log-normal sigma)
 
 
-def box_corners(c, yaw: float, length: float, width: float) -> np.ndarray:
+def box_corners(c: npt.ArrayLike, yaw: float, length: float, width: float) -> np.ndarray:
     """(4,2) footprint corners counter-clockwise seen from above; length along yaw, width across."""
     t = np.array([np.cos(yaw), np.sin(yaw)])
     n = np.array([-t[1], t[0]])
@@ -27,8 +30,9 @@ def box_corners(c, yaw: float, length: float, width: float) -> np.ndarray:
     return np.array([c - hl * t - hw * n, c + hl * t - hw * n, c + hl * t + hw * n, c - hl * t + hw * n])
 
 
-def oriented_box(b: MeshBuilder, c, yaw: float, length: float, width: float, z0: float, z1: float, material: int,
-                 tint: float = 1.0, facades=(-1, -1, -1, -1), top: int | None = None, edges: bool = True) -> None:
+def oriented_box(b: MeshBuilder, c: npt.ArrayLike, yaw: float, length: float, width: float, z0: float, z1: float,
+                 material: int, tint: float = 1.0, facades: Sequence[int] = (-1, -1, -1, -1), top: int | None = None,
+                 edges: bool = True) -> None:
     """A box without a bottom. Wall k runs from corner k to k+1 (box_corners order; wall 0 faces -n, where n is
     yaw turned left); facades[k] is a facade row or -1, its u along the wall from the left foot seen outside."""
     cs = box_corners(c, yaw, length, width)
@@ -46,7 +50,7 @@ def oriented_box(b: MeshBuilder, c, yaw: float, length: float, width: float, z0:
         b.add_edges(np.array(ring), EDGE_GEOMETRIC)
 
 
-def building(b: MeshBuilder, c, yaw: float, width: float, depth: float, height: float, z0: float,
+def building(b: MeshBuilder, c: np.ndarray, yaw: float, width: float, depth: float, height: float, z0: float,
              rng: np.random.Generator, plain: bool = False) -> None:
     """A building whose front (wall 0, facing -n) looks onto the road; width along yaw. plain: its walls are
     plain render (faint shading, windows as drawn) instead of brick or textured plaster. Every draw comes from
@@ -67,8 +71,8 @@ def building(b: MeshBuilder, c, yaw: float, width: float, depth: float, height: 
         oriented_box(b, lc, yaw, width, 0.25, zl - 0.1, zl + 0.15, M["ledge"], rng.uniform(0.8, 1.1))
 
 
-def tree(b: MeshBuilder, p, z0: float, rng: np.random.Generator, scale: float = 1.0, leaf_density: float = 0.0,
-         leaf_size: float = 0.22) -> None:
+def tree(b: MeshBuilder, p: np.ndarray, z0: float, rng: np.random.Generator, scale: float = 1.0,
+         leaf_density: float = 0.0, leaf_size: float = 0.22) -> None:
     """A trunk and a crown: a closed lumpy blob (leaf_density 0) or lobes of leaves (m^2 of leaf a m^3)."""
     trunk_h = rng.uniform(2.2, 3.2) * scale
     oriented_box(b, p, rng.uniform(0, np.pi), 0.3 * scale, 0.3 * scale, z0 - 0.1, z0 + trunk_h + 0.5, M["bark"],
@@ -87,7 +91,8 @@ def tree(b: MeshBuilder, p, z0: float, rng: np.random.Generator, scale: float = 
     _leaves_in_lobes(b, lobes, radii, zs, rng, leaf_density, leaf_size, tint)
 
 
-def shrub(b: MeshBuilder, p, z0: float, rng: np.random.Generator, leaf_density: float, leaf_size: float) -> None:
+def shrub(b: MeshBuilder, p: np.ndarray, z0: float, rng: np.random.Generator, leaf_density: float,
+          leaf_size: float) -> None:
     """A bush at p: 3-6 lobes of leaves from the ground up to 1.2-3.5 m, 1.6-3.6 m across, round a few stems."""
     r, h = rng.uniform(0.8, 1.8), rng.uniform(1.2, 3.5)
     zs = 0.5 * h / r
@@ -220,7 +225,7 @@ def prisms(b: MeshBuilder, centres: np.ndarray, yaw: float, length: float, width
     b.add_triangles(v, tris, f, material, tint)
 
 
-def lamp_post(b: MeshBuilder, p, to_road, z0: float, rng: np.random.Generator) -> None:
+def lamp_post(b: MeshBuilder, p: np.ndarray, to_road: np.ndarray, z0: float, rng: np.random.Generator) -> None:
     """A lamp post at p whose arm reaches towards the road (unit xy vector to_road)."""
     h = rng.uniform(6.0, 8.0)
     yaw = float(np.arctan2(to_road[1], to_road[0]))
@@ -231,7 +236,7 @@ def lamp_post(b: MeshBuilder, p, to_road, z0: float, rng: np.random.Generator) -
                  M["metal"], 1.8)
 
 
-def pole(b: MeshBuilder, p, z0: float, rng: np.random.Generator) -> None:
+def pole(b: MeshBuilder, p: np.ndarray, z0: float, rng: np.random.Generator) -> None:
     """A tall wooden or concrete pole (power line, highway light) with a cross arm."""
     h = rng.uniform(8.0, 10.0)
     yaw = rng.uniform(0, np.pi)
@@ -239,7 +244,7 @@ def pole(b: MeshBuilder, p, z0: float, rng: np.random.Generator) -> None:
     oriented_box(b, p, yaw, 2.2, 0.14, z0 + h - 0.8, z0 + h - 0.6, M["bark"], 0.9)
 
 
-def sign_post(b: MeshBuilder, p, facing, z0: float, rng: np.random.Generator) -> None:
+def sign_post(b: MeshBuilder, p: np.ndarray, facing: np.ndarray, z0: float, rng: np.random.Generator) -> None:
     """A sign post at p whose plate's face looks along the unit xy vector `facing` (towards oncoming traffic)."""
     f = np.asarray(facing, np.float64)
     yaw = float(np.arctan2(f[1], f[0])) + np.pi / 2  # the plate's width runs across `facing`
@@ -254,7 +259,7 @@ def sign_post(b: MeshBuilder, p, facing, z0: float, rng: np.random.Generator) ->
     b.add_quad(corner, [*(-side * size), 0.0], [0.0, 0.0, size], mat, 1.0)
 
 
-def parked_car(b: MeshBuilder, c, yaw: float, z0: float, rng: np.random.Generator) -> None:
+def parked_car(b: MeshBuilder, c: np.ndarray, yaw: float, z0: float, rng: np.random.Generator) -> None:
     tint = float(rng.choice([0.25, 0.5, 0.9, 1.3, 1.7]))
     oriented_box(b, c, yaw, 4.2, 1.8, z0 + 0.3, z0 + 1.0, M["car_paint"], tint)
     t = np.array([np.cos(yaw), np.sin(yaw)])
@@ -267,7 +272,8 @@ def parked_car(b: MeshBuilder, c, yaw: float, z0: float, rng: np.random.Generato
                          1.0, edges=False)
 
 
-def fence(b: MeshBuilder, a, e, z0: float, rng: np.random.Generator, picket_spacing: float = 0.0) -> None:
+def fence(b: MeshBuilder, a: np.ndarray, e: np.ndarray, z0: float, rng: np.random.Generator,
+          picket_spacing: float = 0.0) -> None:
     """A post-and-rail fence from a to e (xy); with picket_spacing > 0 also upright pickets (wood) or bars
     (metal) that far apart, one element repeated along the whole fence."""
     a, e = np.asarray(a, np.float64)[:2], np.asarray(e, np.float64)[:2]
@@ -287,7 +293,7 @@ def fence(b: MeshBuilder, a, e, z0: float, rng: np.random.Generator, picket_spac
         prisms(b, at, yaw, size[0], size[1], z0 - 0.05, z0 + (1.0 if wood else 1.05), mat, 1.0 if wood else 0.8)
 
 
-def hedge(b: MeshBuilder, a, e, z0: float, rng: np.random.Generator, leaf_density: float = 0.0,
+def hedge(b: MeshBuilder, a: np.ndarray, e: np.ndarray, z0: float, rng: np.random.Generator, leaf_density: float = 0.0,
           leaf_size: float = 0.22) -> None:
     """A hedge from a to e (xy): a closed box (leaf_density 0) or leaves filling that box (m^2 of leaf a m^3)."""
     a, e = np.asarray(a, np.float64)[:2], np.asarray(e, np.float64)[:2]
@@ -303,7 +309,8 @@ def hedge(b: MeshBuilder, a, e, z0: float, rng: np.random.Generator, leaf_densit
     leaves(b, np.column_stack([xy, local[:, 2]]), leaf_size, rng, M["leaf"], tint)
 
 
-def wall(b: MeshBuilder, a, e, z0: float, height: float, rng: np.random.Generator, plain: int | None = None) -> None:
+def wall(b: MeshBuilder, a: np.ndarray, e: np.ndarray, z0: float, height: float, rng: np.random.Generator,
+         plain: int | None = None) -> None:
     """A garden wall or a noise barrier from a to e (xy); plain: a plain material instead of concrete or brick."""
     a, e = np.asarray(a, np.float64)[:2], np.asarray(e, np.float64)[:2]
     yaw = float(np.arctan2(*(e - a)[::-1]))

@@ -148,7 +148,7 @@ class Traffic:
 
     # ---------------------------------------------------------------- poses
 
-    def _along(self, s: np.ndarray, lateral: float, reverse: bool):
+    def _along(self, s: np.ndarray, lateral: float, reverse: bool) -> tuple[np.ndarray, np.ndarray]:
         """Arc lengths on the driven path -> positions (K,3) offset `lateral` to the left, headings (K,3) unit."""
         xy = np.column_stack([np.interp(s, self.S, self.road[:, 0]), np.interp(s, self.S, self.road[:, 1])])
         z = np.interp(s, self.S, self.road[:, 2])
@@ -199,7 +199,8 @@ class Traffic:
 
     # ---------------------------------------------------------------- ray casts
 
-    def cast(self, origins: np.ndarray, dirs: np.ndarray, times, max_range: float = 150.0):
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, times: np.ndarray | float, max_range: float = 150.0
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Rays (N,3) origins and directions (town frame; t counts in units of |dir|) at times (N,) ->
         t_hit (N,) (inf: no mover), mover id (N,) (0: none), material (N,), tint (N,), normal (N,3) town frame."""
         n = len(dirs)
