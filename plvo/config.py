@@ -14,7 +14,7 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple, TypeVar
 
 from plvo.atomic import write_text_atomic
 from plvo.config_fields import (
@@ -42,9 +42,8 @@ RegistrationMethod = Literal["ndt", "icp", "gicp"]  # plvo.lidar.registration's
 class OrbConfig:
     n_features: int = setting(1000, COUNT, "features")  # paper, III: 1000 ORB features an image
     scale_factor: float = setting(1.2, Range(1.0, 2.0, lo_open=True))
-    # ORB-SLAM2 has 8; without the 8th (the frame at 1/3.6, ~60 of the 1000 points, which go to the finer levels)
-    # the development set keeps its accuracy, and with LSD at 0.35 twin 08 keeps its last loop, which 8 levels lost
-    # (docs/results/faster_config/)
+    # ORB-SLAM2's 8 but the coarsest: as accurate, and twin 08 keeps its last loop (docs/config.md#orb,
+    # docs/results/faster_config/)
     n_levels: int = setting(7, Range(1, 16), "levels")
     fast_threshold: int = setting(20, Range(1, 254), "grey levels")  # ORB-SLAM2's iniThFAST
     # ORB-SLAM2's minThFAST, retried in cells that found nothing
@@ -67,9 +66,8 @@ class LineConfig:
     merge_overlap: float = setting(0.5, SHARE)  # fraction of the shorter segment that must overlap the longer
     # repeat chaining and merging until stable, at most this often
     max_iterations: int = setting(10, COUNT, "iterations")
-    # LSD on the image downsampled to 0.35: two thirds of its CPU at 0.5 on KITTI 04 (12 against 18 ms a frame,
-    # measured alone; 55-65 ms at 1), the repair's distances grown with LSD's pixel. Chosen with the cheaper back end
-    # for plvo's speed against KISS-ICP's on KITTI 04, on the development set (docs/results/faster_config/)
+    # LSD on the image downsampled to 0.35: two thirds of its CPU at 0.5, the development set's accuracy kept
+    # (docs/config.md#lines, docs/results/faster_config/)
     lsd_scale: float = setting(0.35, RATIO)
     max_lines: int = setting(300, COUNT, "segments")  # keep the longest segments when more are found
     lsd_refine: bool = True  # OpenCV's LSD_REFINE_STD (else LSD_REFINE_NONE)
@@ -252,33 +250,24 @@ class BackendConfig:
     window_keyframes: int = setting(8, Range(2), "keyframes")
     sigma_point_px: float = setting(0.1, POSITIVE, "px")  # paper, III: Sigma^P = 0.1 I (the paper's factor covariance)
     sigma_line: float = setting(0.2, POSITIVE, "px")  # paper, III: Sigma^L = 0.2 I
-    # The paper sets the relative-pose information to zeta I; zeta is dimensionless, so base standard deviations
-    # (metres, degrees) scale it against the reprojection factors: information = zeta / sigma^2 per component.
-    # Small enough that the lidar's relative poses, not the 0.1 px point factors (~10x below real pixel noise), set
-    # the scale and the direction of travel; the rotation sigma is smaller again because the registration's rotation
-    # is ~100x better than its translation in these units (docs/results/defaults.md).
+    # The paper's relative-pose information zeta I as zeta / sigma^2 per component: small enough that the lidar,
+    # not the point factors, sets scale and direction of travel (docs/config.md#backend, docs/results/defaults.md)
     sigma_relative_pose: float = setting(0.0001, POSITIVE, "m")
     sigma_relative_rotation_deg: float = setting(0.0003, POSITIVE, "deg")
-    # ... for an alignment whose residual (its mean point-to-plane distance, e_bar) is relative_pose_residual_m; both
-    # sigmas grow as (e_bar / relative_pose_residual_m)^relative_pose_residual_power (backend.worker.residual_weight).
-    # On the development set the twins' alignments (e_bar 0.03-0.045 m) wanted 0.1 mm (0.5 mm let the tracker's
-    # direction of travel, 0.1 deg off, pull the trajectory), real KITTI 04's (e_bar ~0.086 m: calibration, the
-    # elevation error, a real scene) 1 mm (0.1 mm put it behind KISS-ICP); a third power meets both.
+    # Both sigmas grow as (e_bar / relative_pose_residual_m)^power, e_bar the residual (backend.worker.residual_weight):
+    # a third power meets the twins' and real 04's alignments (docs/config.md#backend, docs/results/defaults.md)
     relative_pose_residual_m: float = setting(0.04, POSITIVE, "m")
     relative_pose_residual_power: float = setting(3.0, NON_NEGATIVE)
-    # The rotation's sigma grows with its own, smaller power: a rougher surface leaves an alignment's translation
-    # sliding along the scene more than its rotation (lever arms of tens of metres), and a rotation factor weakened
-    # as much as the translation's let the tracker's heading pull the trajectory on the realistic twins (devkit
-    # pooled over the development twins 03, 04, 09: 0.32 % at 3, 0.12 % at 1; docs/results/rotation_weight/).
+    # The rotation's sigma grows with its own, smaller power: at the translation's, the tracker's heading pulled the
+    # realistic twins (docs/config.md#backend, docs/results/rotation_weight/)
     relative_rotation_residual_power: float = setting(1.0, NON_NEGATIVE)
     # Virtual baseline of the depth-prior (stereo-form) point factors: their depth weight grows with b^2. KITTI's
     # 0.54: a smaller one gave worse rotations on 04 and worse errors on the towns (docs/results/defaults.md).
     stereo_baseline_m: float = setting(0.54, POSITIVE, "m")
     huber_point: float = setting(2.0, POSITIVE, "px")
     huber_line: float = setting(2.0, POSITIVE, "px")
-    # 5 gave as good a window as 10 at half the time (docs/results/defaults.md), 3 as good as 5 on twins 03 and 04
-    # and real 04 (docs/results/cheaper_backend/), and with the defaults' features on the whole development set
-    # (docs/results/faster_config/)
+    # as accurate as 5 and 10, in less time (docs/config.md#backend, docs/results/cheaper_backend/,
+    # docs/results/faster_config/)
     iterations: int = setting(3, COUNT, "iterations")
     # Observations whose residual is still over this after the first LM round are left out of a second round
     # (bundle_adjustment.py); 0 disables. A lidar depth 5 % off at 10 m is 1.9 px in the stereo row.
@@ -287,15 +276,11 @@ class BackendConfig:
     # Where the concurrent workers run (plvo.runtime.workers): "process" (no GIL shared with the tracker; the
     # features are then extracted in a process of their own too, plvo.features.worker) or "thread".
     executor: Literal["process", "thread"] = "process"
-    # How long the run waits for a worker (back end, loop closer, features) that sends nothing while its result is
-    # due, before it fails the run naming the worker (a stopped or deadlocked process; a dead one is seen at once).
-    # The slowest single job measured, a global bundle adjustment near the end of the 4541-frame soak, took 5.3 s
-    # (docs/results/soak): 300 s leaves a wide margin for a slower or busier machine.
+    # How long the run waits for a silent worker whose result is due before failing the run, naming it: a wide
+    # margin over the slowest job measured (docs/config.md#backend, docs/results/soak/)
     worker_timeout_s: float = setting(300.0, POSITIVE, "s")
-    # A keyframe's back-end result is applied this many frames after the keyframe (or when the next keyframe is
-    # made, if sooner): a fixed point of the run, so the result never depends on how fast the worker was. Longer
-    # than the keyframe spacing, so that the next keyframe's frame is tracked while the back end works instead of
-    # waiting for it (docs/results/defaults.md).
+    # A keyframe's back-end result is applied this many frames later (or at the next keyframe): a fixed point of the
+    # run, late enough for the next keyframe to be tracked meanwhile (docs/config.md#backend, docs/results/defaults.md)
     max_lag_frames: int = setting(6, COUNT0, "frames")
     # What a keyframe's scan is registered to for the relative-pose factors (plvo.lidar.local_map): "local_map", a
     # voxel map of the last local_map_keyframes keyframes' scans in the world frame, or "keyframe", the previous
@@ -303,10 +288,8 @@ class BackendConfig:
     lidar_target: Literal["local_map", "keyframe"] = "local_map"
     local_map_keyframes: int = setting(10, COUNT, "keyframes")
     local_map_voxel_m: float = setting(0.5, POSITIVE, "m")
-    # Source points a map alignment uses at most, evenly thinned from the keyframe's registration cloud (an ICP
-    # iteration costs by the source point): a KITTI-sized scan has 5-9k at the 0.6 m registration voxel, and 4000
-    # fix the pose as well as all of them (2000 as well on the development set, docs/results/cheaper_backend/); a
-    # denser lidar's scans are thinned to the same cost.
+    # Source points a map alignment uses at most (evenly thinned): as exact as all of a KITTI scan's, and a denser
+    # lidar costs the same (docs/config.md#backend, docs/results/cheaper_backend/)
     local_map_source_points: int = setting(2000, Range(100), "points")
 
 
@@ -347,15 +330,12 @@ class LoopConfig:
     global_ba_max_px: float = setting(8.0, POSITIVE, "px")
     # Points in the global BA at most, the same share for every keyframe (global_ba.point_budget); 0: all.
     global_ba_max_points: int = setting(15000, COUNT0, "points")
-    # A global BA result moving a keyframe further from the pose graph's solution than max_move_m + move_fraction x
-    # the pose graph's largest correction is not applied (global_ba.implausible).
-    # Wide enough for right results that move a mid-loop keyframe ~1 m, narrow enough for wrong ones that move
-    # keyframes 6-12 m (the 1 km loop of town 21, docs/results/defaults.md).
+    # A global BA moving a keyframe from the pose graph's solution more than max_move_m + move_fraction x its largest
+    # correction is not applied (global_ba.implausible): right results stay within, wrong ones not (docs/config.md#loop)
     global_ba_max_move_m: float = setting(2.0, NON_NEGATIVE, "m")
     global_ba_move_fraction: float = setting(1.0, NON_NEGATIVE)
-    # A verified loop must agree with the odometry up to this drift: the correction it implies for the query keyframe
-    # may be at most max_drift_fraction x the distance driven since the matched keyframe + max_drift_floor_m (the
-    # synthetic town repeats buildings: a 187 m false loop passed PnP/PnL and scan registration). 0 disables.
+    # A verified loop corrects the query keyframe by at most max_drift_fraction x the distance driven since the match
+    # + max_drift_floor_m: the town's repeated buildings gave false loops (docs/config.md#loop). 0 disables.
     max_drift_fraction: float = setting(0.1, NON_NEGATIVE)
     max_drift_floor_m: float = setting(2.0, NON_NEGATIVE, "m")
     # Two keyframes that see one place are at most this far apart: a longer loop edge is refused, and a candidate
@@ -364,48 +344,43 @@ class LoopConfig:
     # Lidar place recognition beside the bags of words (plvo.loop.lidar_place, map-closures' density maps, which
     # find a place whichever way it is driven), verified by scan registration alone.
     lidar_place: bool = True
-    # A place node every this much driving: map_closures keeps 50-120 kB a node (15-35 kB a KITTI keyframe at 10 m)
-    # and a query costs ~4 ms a matching node; local maps reach 60 m further, so 10 m apart they overlap mostly.
+    # A place node every this much driving: overlapping local maps at a small memory and query cost
+    # (docs/config.md#loop, plvo/loop/lidar_place.py)
     lidar_place_spacing_m: float = setting(10.0, NON_NEGATIVE, "m")
-    # A keyframe's local map: the scans of the keyframes this far before and after it (a node waits until the car is
-    # this far past it). Maps around the keyframe found a median 14 density-map inliers on true revisits, maps of the
-    # last 30 m 8 (plvo/loop/lidar_place.py).
+    # A keyframe's local map: the scans this far before and after it (a node waits until the car is this far past it);
+    # more inliers than maps behind the keyframe alone (docs/config.md#loop, plvo/loop/lidar_place.py)
     lidar_place_reach_m: float = setting(20.0, NON_NEGATIVE, "m")
-    # Local maps cropped to this radius: ORB leaves out 15.5 m (31 px) at the density image's border; 50 m found
-    # half the inliers of 70 m on the out-and-back twin.
+    # Local maps cropped to this radius: smaller crops found fewer inliers (docs/config.md#loop,
+    # plvo/loop/lidar_place.py)
     lidar_place_radius_m: float = setting(70.0, POSITIVE, "m")
-    # local map voxel and density image pixel (map_closures'; 0.75 and 1 found less)
+    # local map voxel and density image pixel: map_closures', coarser ones found less (docs/config.md#loop)
     lidar_place_voxel_m: float = setting(0.5, POSITIVE, "m")
-    # ORB matches between density images within this Hamming distance: map_closures' 50 validated 4-10x more stored
-    # places at ~4 ms each on the project's machine (median query 85 ms against 9 at 145 nodes); 30 lost true matches.
+    # ORB matches between density images within this Hamming distance: cheaper than map_closures' 50, without the
+    # true matches 30 lost (docs/config.md#loop, plvo/loop/lidar_place.py)
     lidar_place_hamming: int = setting(40, HAMMING, "bits")
-    # map_closures' own threshold: true revisits reached 5-24, other places 4 at most
+    # map_closures' own threshold: between other places' counts and true revisits' (docs/config.md#loop)
     lidar_place_min_inliers: int = setting(5, Range(3), "inliers")
     # Verification by registering the two keyframes' local maps (plvo.loop.map_registration): of the query's map
     # the points within this radius, which the candidate's map (the same place seen from up to 40 m) covers.
     scan_verify_radius_m: float = setting(40.0, POSITIVE, "m")
-    # Share of the query's points matched: accepted revisits 0.57-1.00 on the twins 01 and 03-10; a corner of 08
-    # seen from two streets passed with 0.40 (error 0.124 m), its edge 0.54 m / 2.0 deg off (0.3 took it).
+    # Share of the query's points matched: below true revisits', above a corner seen from two streets with a wrong
+    # edge (docs/config.md#loop, docs/results/defaults.md)
     scan_min_overlap: float = setting(0.5, SHARE)
-    # RMS point-to-plane distance (each capped at 0.5 m): true revisits 0.03-0.06 m on the twins' deskewed scans, up
-    # to 0.12 m on their swept (raw) ones
+    # RMS point-to-plane distance (each capped at 0.5 m): above true revisits', deskewed or swept (docs/config.md#loop,
+    # plvo/loop/map_registration.py)
     scan_max_error_m: float = setting(0.15, POSITIVE, "m")
-    # Smallest eigenvalue of the point-to-plane Hessian per point (rotations at a 10 m lever): true revisits
-    # 0.028-0.137 on twins and town, other places lined up (a street slid along itself, the town's look-alike
-    # streets) 0.002-0.034, a corridor ~0. Above this floor the restarts decide (scan_unique_m): twin 09's long
-    # straight first street, revisited, had 0.012-0.024 and came back within 0.01-0.02 m where the places lined up
-    # ended 0.47-3.99 m away (docs/results/faster_config/); below it (the corridor) nothing is registered.
+    # Smallest eigenvalue of the point-to-plane Hessian per point (rotations at a 10 m lever): below it (a corridor)
+    # nothing is registered, above it the restarts decide (docs/config.md#loop, docs/results/faster_config/)
     scan_min_constraint: float = setting(0.005, NON_NEGATIVE)
     # ICP restarted this far to either side along the least constrained direction must come back within
-    # scan_unique_m: true revisits came back within 0.00-0.11 m, other places lined up ended 0.47-7.4 m away.
+    # scan_unique_m, as true revisits do and other places lined up do not (docs/config.md#loop)
     scan_basin_m: float = setting(3.0, NON_NEGATIVE, "m")
     scan_unique_m: float = setting(0.3, POSITIVE, "m")
-    # A scan-verified loop edge joins keyframes at most this far apart (a candidate further away hands it to its
-    # neighbour nearest the query, so the edge joins the nearest views there are): local maps reach 20 m either side
-    # of their keyframe, and KITTI 09's return ends 16 m from its first keyframes (registered with overlap 0.93).
+    # A scan-verified loop edge joins keyframes at most this far apart (a further candidate hands it to its neighbour
+    # nearest the query): as far as local maps reach (docs/config.md#loop, docs/results/defaults.md)
     scan_max_edge_m: float = setting(20.0, POSITIVE, "m")
     # A bag-of-words candidate refused for too few image matches with depth or PnP/PnL inliers is registered too,
-    # from the odometry's relative pose (the best such candidate of a keyframe: a registration costs 0.2-1 s).
+    # from the odometry's relative pose: only a keyframe's best, registrations being costly (docs/config.md#loop)
     scan_fallback: bool = True
     # Concurrent runs: a keyframe's loop result is applied this many frames after it, a global BA's this many frames
     # after the loop correction it follows (fixed points of the run: the tracker waits there if the worker is late).
@@ -424,6 +399,42 @@ class SystemConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+
+    def sections(self, part: type[P]) -> P:
+        """The sections a part is built from (`part`'s fields name them): each part is given its own, not the whole."""
+        return part(**{name: getattr(self, name) for name in part._fields})
+
+
+class TrackerSections(NamedTuple):
+    """What the frame-to-frame tracker (plvo.tracking.frontend.Frontend) is built from."""
+
+    orb: OrbConfig
+    lines: LineConfig
+    matching: MatchingConfig
+    depth: DepthConfig
+    tracking: TrackingConfig  # keyframes, PnP/PnL, the search by projection
+    crosscheck: CrossCheckConfig
+    registration: RegistrationConfig  # whether the scans the priors come from are deskewed
+
+
+class BackendSections(NamedTuple):
+    """What the back end (plvo.backend.worker.BackendCore) is built from."""
+
+    backend: BackendConfig
+    registration: RegistrationConfig
+    tracking: TrackingConfig  # which features the tracker keeps (points only, depth priors): what the window holds
+
+
+class LoopSections(NamedTuple):
+    """What the loop closer (plvo.loop.worker.LoopCore) is built from."""
+
+    loop: LoopConfig
+    backend: BackendConfig  # the global bundle adjustment weighs its factors as the back end does
+    registration: RegistrationConfig
+    tracking: TrackingConfig  # whether landmarks carry depth priors
+
+
+P = TypeVar("P", TrackerSections, BackendSections, LoopSections)
 
 
 # The paper's ablations, as overrides of the full system.

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,29 @@ class EdgeKind(IntEnum):
     ODOMETRY = 0  # consecutive keyframes: VO relative pose / lidar registration
     COVISIBILITY = 1  # keyframes sharing landmarks in the local window
     LOOP = 2  # accepted loop closure
+
+
+class KeyframeReason(StrEnum):
+    """Why a frame became a keyframe (plvo.tracking.keyframes), in the order the policy checks them."""
+
+    FIRST = "first frame"
+    LOST = "tracking lost: re-initialised from lidar depth"
+    OVERRULED = "camera overruled by the lidar: re-initialised from lidar depth"  # plvo.tracking.lidar_check
+    FEW_TRACKED = "few tracked landmarks"  # fewer than tracking.min_tracked_landmarks
+    ROTATION = "large rotation"  # more than tracking.max_rotation_deg since the last keyframe
+    INTERVAL = "interval"  # tracking.keyframe_every frames since the last keyframe
+
+
+@dataclass(frozen=True)
+class KeyframeWhy:
+    """A keyframe's reason and the figures that decided it ("12 < 60", "11.2 > 10.0 deg"); reads as the sentence
+    the logs and the viewers show."""
+
+    kind: KeyframeReason
+    detail: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.kind} ({self.detail})" if self.detail else str(self.kind)
 
 
 def _empty(shape: tuple[int, ...], dtype: type = float) -> np.ndarray:
@@ -61,7 +84,7 @@ class KeyframeResult:
     frame_index: int
     keyframe_id: int
     T_world_cam: np.ndarray | None = None
-    reason: str = ""
+    reason: KeyframeWhy | None = None
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ import numpy as np
 from plvo.backend.bundle_adjustment import optimize
 from plvo.backend.problem import BAProblem, BAResult, relative_pose_information
 from plvo.backend.scale_correction import correct_scale, scale_factor
-from plvo.config import BackendConfig, RegistrationConfig, SystemConfig
+from plvo.config import BackendConfig, BackendSections, RegistrationConfig
 from plvo.geometry import se3
 from plvo.lidar.local_map import LocalMap
 from plvo.lidar.registration import PreparedScan, RegistrationResult, SparseScan, align, prepare
@@ -97,7 +97,7 @@ class BackendOutput:
 class BackendCore:
     """Registration, scale correction and bundle adjustment of each keyframe's window (see the module doc)."""
 
-    def __init__(self, calib: Calibration, config: SystemConfig):
+    def __init__(self, calib: Calibration, config: BackendSections):
         self.cfg = config
         self.K = np.asarray(calib.K, dtype=float)
         self.T_cam_velo = np.asarray(calib.T_cam_velo, dtype=float)

@@ -33,7 +33,7 @@ import numpy as np
 
 from plvo.allocator import release_free_memory
 from plvo.backend.problem import BAResult
-from plvo.config import SystemConfig
+from plvo.config import LoopSections
 from plvo.loop import global_ba
 from plvo.loop.closer import LoopCloser, LoopOutcome
 from plvo.loop.verification import SOURCES, LoopKeyframe
@@ -101,7 +101,7 @@ class LoopOutput:
 class LoopCore:
     """Detect and close loops; a pure function of its jobs in order (see the module doc)."""
 
-    def __init__(self, calib: Calibration, config: SystemConfig):
+    def __init__(self, calib: Calibration, config: LoopSections):
         self.cfg = config
         self.K = np.asarray(calib.K, dtype=float)
         self.closer = LoopCloser(self.K, cfg=config.loop, T_cam_velo=np.asarray(calib.T_cam_velo, float),

@@ -30,7 +30,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from plvo.config import SystemConfig, config_to_dict, config_to_toml
+from plvo.config import (
+    BackendSections,
+    LoopSections,
+    SystemConfig,
+    TrackerSections,
+    config_to_dict,
+    config_to_toml,
+)
 from plvo.depth.extract import extract_depth
 from plvo.features.extract import extract_features
 from plvo.features.matching import match_lines, match_points
@@ -216,7 +223,7 @@ class System:
             return out.priors
 
         self._calib = calib
-        frontend = self._frontend = Frontend(calib, self.config,
+        frontend = self._frontend = Frontend(calib, self.config.sections(TrackerSections),
                                              stages=Stages(extract_features, match_points, match_lines, depth))
         b, lags = self.config.backend, Lags.of(self.config)
         mode = b.executor if b.concurrent else "inline"
@@ -224,15 +231,16 @@ class System:
         if b.enabled:
             from plvo.backend.worker import BackendCore  # open3d and gtsam: loaded when a back end is made
 
-            worker = OrderedWorker("back end", BackendCore, (calib, self.config), mode, timeout_s=b.worker_timeout_s)
+            worker = OrderedWorker("back end", BackendCore, (calib, self.config.sections(BackendSections)), mode,
+                                   timeout_s=b.worker_timeout_s)
             self._backend = BackendStage(worker, self._scheduler, lags, frontend, self.config, graph, self.record,
                                          self._emit)
             self._workers.append(worker)
         if self.config.loop.enabled:
             from plvo.loop.worker import LoopCore
 
-            worker = OrderedWorker("loop closer", LoopCore, (calib, self.config), mode, niceness=LOOKAHEAD_NICENESS,
-                                   timeout_s=b.worker_timeout_s)
+            worker = OrderedWorker("loop closer", LoopCore, (calib, self.config.sections(LoopSections)), mode,
+                                   niceness=LOOKAHEAD_NICENESS, timeout_s=b.worker_timeout_s)
             self._loop = LoopStage(worker, self._scheduler, lags, frontend.map, calib.K, self.config, graph,
                                    self.record, self._emit, lambda: self._frame_now)
             self._workers.append(worker)

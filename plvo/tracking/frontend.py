@@ -30,15 +30,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from plvo.config import SystemConfig
+from plvo.config import TrackerSections
 from plvo.depth.extract import extract_depth_priors
 from plvo.features.extract import extract_features
 from plvo.features.matching import match_lines, match_points
 from plvo.geometry import se3
 from plvo.geometry.camera import backproject, in_image, project
 from plvo.lidar.deskew import Sweep, azimuth_times, needs_deskew, twist_from_motion
-from plvo.results import TrackingResult
-from plvo.tracking import keyframes as kfp
+from plvo.results import KeyframeReason, KeyframeWhy, TrackingResult
 from plvo.tracking.association import FrameAssociation, search_by_projection
 from plvo.tracking.corrections import RELOCALISED, MapCorrection
 from plvo.tracking.correspondences import Correspondences
@@ -90,7 +89,7 @@ class FrontendResult(TrackingResult):
 
     T_world_cam0: np.ndarray = field(default_factory=lambda: np.eye(4))
     status: str = TRACKED
-    keyframe_reason: str = ""
+    keyframe_reason: KeyframeWhy | None = None  # when this frame became a keyframe
     point_uv: np.ndarray = _arr((0, 2))
     point_landmark: np.ndarray = _arr((0,), np.int64)
     point_inlier: np.ndarray = _arr((0,), bool)
@@ -151,7 +150,7 @@ def _default_stages() -> Stages:
 class Frontend:
     """Per-frame tracker. `track(frame)` once per frame, in order; `map` is shared with the back end."""
 
-    def __init__(self, calib: Calibration, config: SystemConfig, landmark_map: LandmarkMap | None = None,
+    def __init__(self, calib: Calibration, config: TrackerSections, landmark_map: LandmarkMap | None = None,
                  T_world_cam_init: np.ndarray | None = None, stages: Stages | None = None):
         """stages: the feature extraction, point and line matching and depth priors (Stages), defaults to plvo's."""
         self.calib = calib
@@ -211,7 +210,8 @@ class Frontend:
             feats = self.features(frame.image)
             timings["features"] = time.perf_counter() - t0
         if self._prev is None:
-            res = self._initialise(frame, feats, self._T_init, INITIALISED, kfp.FIRST, "first frame", timings)
+            res = self._initialise(frame, feats, self._T_init, INITIALISED, KeyframeWhy(KeyframeReason.FIRST),
+                                   "first frame", timings)
         else:
             res = self._track(frame, feats, timings, self._prev)
         if self._prev_time is not None and frame.time > self._prev_time:
@@ -298,7 +298,8 @@ class Frontend:
                 self.checks.note(frame.index, "tracking lost", f"{sol.message}; the lidar "
                                  f"{'could not judge' if lidar is not None else 'was not asked'}: the motion "
                                  "model's guess, landmarks from the current lidar depth")
-                res = self._initialise(frame, feats, T_pred, REINITIALISED, kfp.LOST, msg, timings, corr)
+                res = self._initialise(frame, feats, T_pred, REINITIALISED, KeyframeWhy(KeyframeReason.LOST), msg,
+                                       timings, corr)
                 return dataclasses.replace(res, source=PREDICTION)
         if source == CAMERA:
             t = time.perf_counter()
@@ -335,7 +336,7 @@ class Frontend:
         state = _FrameState(frame.index, feats, T, assoc, kf_track)
         decision = self.policy.decide(frame.index, T, assoc.n_points + assoc.n_lines)
         keyframe, n_new = None, (0, 0)
-        if decision.is_keyframe and not repeated_scan:  # a repeated scan's depth would be the previous frame's
+        if decision.reason is not None and not repeated_scan:  # a repeated scan's depth would be the previous frame's
             t = time.perf_counter()
             keyframe, n_new = self._make_keyframe(frame, state, decision.reason, from_lidar=False)
             timings["keyframe"] = time.perf_counter() - t
@@ -346,7 +347,7 @@ class Frontend:
                f"{int(l_in.sum())}/{len(l_in)} line ({n_found_l} re-found) inliers"
                + (f"; keyframe ({decision.reason})" if keyframe else ""))
         log.debug(msg)
-        res = self._result(frame, state, TRACKED, msg, corr, timings, reason=decision.reason if keyframe else "",
+        res = self._result(frame, state, TRACKED, msg, corr, timings, reason=decision.reason if keyframe else None,
                            n_pm=len(pm), n_lm=len(lm), inliers=(p_in, l_in), n_new=n_new, keyframe=keyframe,
                            pnpl_residuals=(sol.point_residuals[sol.point_inliers],
                                            sol.line_residuals[sol.line_inliers]))
@@ -480,7 +481,7 @@ class Frontend:
         msg = f"frame {frame.index}: camera overruled by the lidar ({why}); re-initialised from the lidar's depth"
         self._velocity = se3.inv(base) @ T  # base: the previous frame's pose
         self._held = None
-        res = self._initialise(frame, feats, T, OVERRULED, kfp.OVERRULED, msg, timings, corr)
+        res = self._initialise(frame, feats, T, OVERRULED, KeyframeWhy(KeyframeReason.OVERRULED), msg, timings, corr)
         return dataclasses.replace(res, source=LIDAR)
 
     def _hold(self, frame: Frame, feats: FeatureSet, base: np.ndarray, lidar: LidarMotion,
@@ -661,8 +662,8 @@ class Frontend:
         self._last_kf_pose_seen = T_kf
 
     # ---- keyframes and landmarks -------------------------------------------------------------------------
-    def _initialise(self, frame: Frame, feats: FeatureSet, T: np.ndarray, status: str, reason: str, msg: str,
-                    timings: dict[str, float], corr: Correspondences | None = None) -> FrontendResult:
+    def _initialise(self, frame: Frame, feats: FeatureSet, T: np.ndarray, status: str, reason: KeyframeWhy,
+                    msg: str, timings: dict[str, float], corr: Correspondences | None = None) -> FrontendResult:
         """A keyframe whose landmarks all come from the current lidar depth (first frame, or after a loss)."""
         state = _FrameState(frame.index, feats, np.array(T, dtype=float),
                             FrameAssociation.empty(feats.n_points, feats.n_lines),
@@ -676,7 +677,7 @@ class Frontend:
             corr = self._correspondences(state, feats, _no_matches(), _no_matches())
         return self._result(frame, state, status, msg, corr, timings, reason=reason, n_new=n_new, keyframe=keyframe)
 
-    def _make_keyframe(self, frame: Frame, state: _FrameState, reason: str, from_lidar: bool
+    def _make_keyframe(self, frame: Frame, state: _FrameState, reason: KeyframeWhy, from_lidar: bool
                        ) -> tuple[KeyframeInfo, tuple[int, int]]:
         kf_id = self.map.add_keyframe(frame.index, state.T_world_cam)
         assoc, feats = state.assoc, state.features
@@ -779,7 +780,7 @@ class Frontend:
 
     # ---- result ------------------------------------------------------------------------------------------
     def _result(self, frame: Frame, state: _FrameState, status: str, msg: str, corr: Correspondences,
-                timings: dict[str, float], *, reason: str = "", n_pm: int = 0, n_lm: int = 0,
+                timings: dict[str, float], *, reason: KeyframeWhy | None = None, n_pm: int = 0, n_lm: int = 0,
                 inliers: tuple[np.ndarray, np.ndarray] | None = None, n_new: tuple[int, int] = (0, 0),
                 keyframe: KeyframeInfo | None = None,
                 pnpl_residuals: tuple[np.ndarray, np.ndarray] = (_NONE, _NONE)) -> FrontendResult:

@@ -17,25 +17,21 @@ from plvo.geometry import se3
 from plvo.geometry.camera import pixel_rays, project
 from plvo.lidar.deskew import Sweep
 from plvo.lidar.scan import registration_scan
+from plvo.results import KeyframeReason, KeyframeWhy
 from plvo.types import DepthPriors, FeatureSet, Frame
-
-FIRST = "first frame"
-LOST = "tracking lost: re-initialised from lidar depth"
-OVERRULED = "camera overruled by the lidar: re-initialised from lidar depth"
-FEW_TRACKED = "few tracked landmarks"
-ROTATION = "large rotation"
-INTERVAL = "interval"
 
 
 @dataclass(frozen=True)
 class KeyframeDecision:
-    """is_keyframe and why (one of the module's reason strings, with numbers appended); frames_since_last and
-    rotation_deg since the last keyframe."""
+    """Why the frame is a keyframe (None: it is not); frames_since_last and rotation_deg since the last keyframe."""
 
-    is_keyframe: bool
-    reason: str
+    reason: KeyframeWhy | None
     frames_since_last: int
     rotation_deg: float
+
+    @property
+    def is_keyframe(self) -> bool:
+        return self.reason is not None
 
 
 class KeyframePolicy:
@@ -51,20 +47,22 @@ class KeyframePolicy:
                ) -> KeyframeDecision:
         """Frame index, its (4,4) pose and the number of landmarks tracked into it -> decision."""
         if self.last_frame is None or self.last_T_world_cam is None:
-            return KeyframeDecision(True, FIRST, 0, 0.0)
+            return KeyframeDecision(KeyframeWhy(KeyframeReason.FIRST), 0, 0.0)
         gap = frame_index - self.last_frame
         rot = float(np.degrees(se3.rotation_angle(se3.inv(self.last_T_world_cam) @ T_world_cam)))
         if lost:
-            return KeyframeDecision(True, LOST, gap, rot)
+            return KeyframeDecision(KeyframeWhy(KeyframeReason.LOST), gap, rot)
         if gap <= 0:
-            return KeyframeDecision(False, "", gap, rot)
+            return KeyframeDecision(None, gap, rot)
         if n_tracked < self.cfg.min_tracked_landmarks:
-            return KeyframeDecision(True, f"{FEW_TRACKED} ({n_tracked} < {self.cfg.min_tracked_landmarks})", gap, rot)
+            why = KeyframeWhy(KeyframeReason.FEW_TRACKED, f"{n_tracked} < {self.cfg.min_tracked_landmarks}")
+            return KeyframeDecision(why, gap, rot)
         if rot > self.cfg.max_rotation_deg:
-            return KeyframeDecision(True, f"{ROTATION} ({rot:.1f} > {self.cfg.max_rotation_deg} deg)", gap, rot)
+            why = KeyframeWhy(KeyframeReason.ROTATION, f"{rot:.1f} > {self.cfg.max_rotation_deg} deg")
+            return KeyframeDecision(why, gap, rot)
         if gap >= self.interval:
-            return KeyframeDecision(True, f"{INTERVAL} ({gap} frames)", gap, rot)
-        return KeyframeDecision(False, "", gap, rot)
+            return KeyframeDecision(KeyframeWhy(KeyframeReason.INTERVAL, f"{gap} frames"), gap, rot)
+        return KeyframeDecision(None, gap, rot)
 
     def accept(self, frame_index: int, T_world_cam: np.ndarray) -> None:
         """A keyframe was made at frame_index with pose (4,4)."""
@@ -90,7 +88,7 @@ class KeyframeInfo:
     depth_priors: DepthPriors | None
     point_landmark: np.ndarray
     line_landmark: np.ndarray
-    reason: str
+    reason: KeyframeWhy
     sweep: Sweep | None = None
 
     @cached_property

@@ -9,7 +9,17 @@ import numpy as np
 from plvo.depth.extract import DepthDebug
 from plvo.geometry.se3 import exp
 from plvo.recording import RunInfo
-from plvo.results import EdgeKind, GraphResult, KeyframeResult, LoopResult, MapResult, MetricsResult, TimingResult
+from plvo.results import (
+    EdgeKind,
+    GraphResult,
+    KeyframeReason,
+    KeyframeResult,
+    KeyframeWhy,
+    LoopResult,
+    MapResult,
+    MetricsResult,
+    TimingResult,
+)
 from plvo.tracking.frontend import FrontendResult
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame
 
@@ -18,6 +28,10 @@ T_CAM_VELO = np.array([[0, -1, 0, 0], [0, 0, -1, -0.08], [1, 0, 0, -0.27], [0, 0
 CALIB = Calibration(K=K, T_cam_velo=T_CAM_VELO, width=1200, height=360)
 LOST_FRAME = 4  # tracking is lost and re-initialised here (a keyframe)
 
+
+
+def _why(lost: bool) -> KeyframeWhy:
+    return KeyframeWhy(KeyframeReason.LOST) if lost else KeyframeWhy(KeyframeReason.INTERVAL, "3 frames")
 
 def pose(i: int) -> np.ndarray:
     """A curving drive: 1 m forward a frame and a yaw that grows, so rotations are far from symmetric."""
@@ -53,7 +67,7 @@ def tracking(i: int, fs: FeatureSet, is_kf: bool) -> FrontendResult:
     status = "initialised" if first else "reinitialised" if lost else "tracked"
     msg = f"frame {i}: tracking lost (too few matches); re-initialised from the current lidar depth" if lost else "ok"
     return FrontendResult(i, pose(i), 40, 8, np.flatnonzero(p_in), np.flatnonzero(l_in), is_kf, not lost, msg,
-                          status=status, keyframe_reason="lost" if lost else "every 3" if is_kf else "",
+                          status=status, keyframe_reason=_why(lost) if is_kf else None,
                           point_uv=fs.keypoints[:len(p_in)], point_landmark=np.arange(len(p_in)), point_inlier=p_in,
                           line_segments=fs.segments[:len(l_in)], line_landmark=np.arange(len(l_in)),
                           line_inlier=l_in, n_new_points=30 if is_kf else 0, n_new_lines=5 if is_kf else 0)
@@ -109,7 +123,7 @@ def drive(recorder, n: int = 9, every: int = 3, backend_lag: int = 1, start: boo
         recorder.on_stage(i, tracking(i, fs, is_kf))
         if is_kf:
             k = kfs.index(i)
-            recorder.on_stage(i, KeyframeResult(i, k, pose(i), "lost" if i == LOST_FRAME else "every 3"))
+            recorder.on_stage(i, KeyframeResult(i, k, pose(i), _why(i == LOST_FRAME)))
             recorder.on_stage(i, depth())
             recorder.on_stage(i, depth_debug(rng))
             poses = np.array([pose(f) for f in kfs[:k + 1]])

@@ -126,3 +126,18 @@ def test_every_numeric_field_declares_its_range_and_unit_beside_it():
     with pytest.raises(ConfigError, match="'part.undeclared_m' has no declared range"):
         check_ranges(Whole())
     assert numeric_fields(Whole())["part.declared"].valid == Range(0.0, 2.0)
+
+
+def test_each_part_is_built_from_its_own_sections():
+    """The tracker, the back end and the loop closer are given the sections they read, the very objects of the
+    config, and nothing else (a part reading another section fails at once, not with a silently default value)."""
+    from plvo.config import BackendSections, LoopSections, TrackerSections
+
+    cfg = with_ablation(SystemConfig(), "points_only")
+    tracker = cfg.sections(TrackerSections)
+    assert tracker.tracking is cfg.tracking and tracker.tracking.points_only
+    assert set(TrackerSections._fields) == {"orb", "lines", "matching", "depth", "tracking", "crosscheck",
+                                            "registration"}
+    assert not hasattr(tracker, "backend") and not hasattr(tracker, "loop")
+    assert cfg.sections(BackendSections).backend is cfg.backend and not hasattr(cfg.sections(BackendSections), "orb")
+    assert cfg.sections(LoopSections).loop is cfg.loop and not hasattr(cfg.sections(LoopSections), "depth")

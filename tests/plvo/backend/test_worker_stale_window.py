@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from plvo.backend.worker import BackendCore, BackendJob
-from plvo.config import SystemConfig
+from plvo.config import BackendSections, SystemConfig
 from plvo.data.kitti import KittiOdometry
 from plvo.geometry import se3
 from plvo.tracking.corrections import WindowData
@@ -42,7 +42,7 @@ def town(synth_sequence_factory):
 
 def test_edges_follow_the_lidar_when_the_window_holds_stale_predictions(town):
     ds, gt = town
-    core = BackendCore(ds.calib, SystemConfig())
+    core = BackendCore(ds.calib, SystemConfig().sections(BackendSections))
     frames = list(range(0, 24, 2))
     given: list[np.ndarray] = []  # what the map holds for each keyframe: the prediction it was made with
     for k, f in enumerate(frames):

@@ -14,7 +14,7 @@ import logging
 import numpy as np
 import pytest
 
-from plvo.config import SystemConfig
+from plvo.config import SystemConfig, TrackerSections
 from plvo.geometry import se3
 from plvo.tracking.frontend import Frontend, Stages
 from plvo.tracking.keyframes import closest_points_on_lines
@@ -169,7 +169,7 @@ def run(world: World, cfg: SystemConfig):
     # the stand-ins have no images or scans to check the camera against (tests/plvo/tracking/test_lidar_check.py
     # does that)
     cfg = dataclasses.replace(cfg, crosscheck=dataclasses.replace(cfg.crosscheck, enabled=False))
-    fe = Frontend(CALIB, cfg, stages=world.stages())
+    fe = Frontend(CALIB, cfg.sections(TrackerSections), stages=world.stages())
     results = []
     for i in range(len(world.poses)):
         world.current = i
@@ -261,7 +261,7 @@ def test_no_depth_priors_ablation_triangulates_points_and_skips_lines():
 
 def test_backend_update_of_last_keyframe_moves_the_tracker():
     world = World(trajectory(12, speed=1.0), seed=5, wrong_match_frac=0.0)
-    fe = Frontend(CALIB, CFG, stages=world.stages())
+    fe = Frontend(CALIB, CFG.sections(TrackerSections), stages=world.stages())
     res = []
     for i in range(10):
         world.current = i

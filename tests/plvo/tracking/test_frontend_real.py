@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plvo.config import SystemConfig
+from plvo.config import SystemConfig, TrackerSections
 from plvo.data.kitti import KittiOdometry
 from plvo.geometry import se3
 from plvo.tracking.frontend import Frontend
@@ -14,7 +14,7 @@ from plvo_eval.kitti_metric import short_relative_error
 
 
 def _run(ds, cfg=SystemConfig()):
-    fe = Frontend(ds.calib, cfg, T_world_cam_init=ds.gt_T_world_cam[0])
+    fe = Frontend(ds.calib, cfg.sections(TrackerSections), T_world_cam_init=ds.gt_T_world_cam[0])
     res = [fe.track(ds[i]) for i in range(len(ds))]
     return fe, res, np.array([r.T_world_cam for r in res])
 

@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 
-from plvo.config import SystemConfig
+from plvo.config import SystemConfig, TrackerSections
 from plvo.data.kitti import KittiOdometry
 from plvo.geometry import se3
 from plvo.tracking.frontend import Frontend
@@ -20,7 +20,7 @@ CFG = SystemConfig()
 
 def _track(ds, cfg=CFG, image_override=None):
     """Run the tracker over ds; image_override: {frame: (H,W) uint8} replaces those frames' images."""
-    fe = Frontend(ds.calib, cfg, T_world_cam_init=ds.gt_T_world_cam[0])
+    fe = Frontend(ds.calib, cfg.sections(TrackerSections), T_world_cam_init=ds.gt_T_world_cam[0])
     res = []
     for i in range(len(ds)):
         frame = ds[i]

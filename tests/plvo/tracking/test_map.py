@@ -7,6 +7,7 @@ import pytest
 
 from plvo.config import TrackingConfig
 from plvo.geometry import se3
+from plvo.results import KeyframeReason, KeyframeWhy
 from plvo.tracking.association import FrameAssociation
 from plvo.tracking.keyframes import KeyframePolicy, triangulate_tracks
 from plvo.tracking.map import LandmarkMap
@@ -212,7 +213,7 @@ def test_keyframe_policy_interval_and_early_reasons():
     cfg = TrackingConfig(keyframe_every=3, min_tracked_landmarks=60, max_rotation_deg=10.0)
     p = KeyframePolicy(cfg)
     d = p.decide(0, _T(), 0)
-    assert d.is_keyframe and d.reason == "first frame"
+    assert d.is_keyframe and d.reason == KeyframeWhy(KeyframeReason.FIRST) and str(d.reason) == "first frame"
     p.accept(0, _T())
     made = []
     for i in range(1, 10):
@@ -222,11 +223,14 @@ def test_keyframe_policy_interval_and_early_reasons():
             p.accept(i, _T(i))
     assert made == [3, 6, 9]
     d = p.decide(10, _T(10), 59)
-    assert d.is_keyframe and d.reason.startswith("few tracked")
+    assert d.reason == KeyframeWhy(KeyframeReason.FEW_TRACKED, "59 < 60")
+    assert str(d.reason) == "few tracked landmarks (59 < 60)"  # the sentence the logs and the viewers show
     d = p.decide(10, _T(10, yaw_deg=11.0), 200)
-    assert d.is_keyframe and d.reason.startswith("large rotation") and d.rotation_deg == pytest.approx(11.0)
-    assert not p.decide(10, _T(10, yaw_deg=9.0), 200).is_keyframe
-    assert p.decide(10, _T(10), 200, lost=True).reason.startswith("tracking lost")
+    assert d.reason is not None and d.reason.kind is KeyframeReason.ROTATION and d.rotation_deg == pytest.approx(11.0)
+    assert str(d.reason) == "large rotation (11.0 > 10.0 deg)"
+    assert p.decide(10, _T(10, yaw_deg=9.0), 200).reason is None
+    assert p.decide(10, _T(10), 200, lost=True).reason == KeyframeWhy(KeyframeReason.LOST)
+    assert p.decide(12, _T(12), 200).reason == KeyframeWhy(KeyframeReason.INTERVAL, "3 frames")
 
 
 def test_keyframe_policy_max_gap_caps_interval():
