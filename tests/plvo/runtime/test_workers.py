@@ -223,7 +223,7 @@ def test_a_worker_process_reuses_freed_memory_instead_of_faulting_it_in_again():
     import subprocess
 
     script = (f"import sys; sys.path[:0] = {sys.path!r}; "
-              "from tests.test_workers import _faults_of_scan_sized_arrays as f; print(f())")
+              "from tests.plvo.runtime.test_workers import _faults_of_scan_sized_arrays as f; print(f())")
     default = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                                  cwd=Path(__file__).resolve().parents[3]).stdout)
     assert default > 20 * 500  # the default policy: the test's premise
