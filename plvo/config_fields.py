@@ -75,6 +75,7 @@ class Declared:
     def items(self) -> tuple[Any, ...]:
         return self.value if isinstance(self.value, tuple) else (self.value,)
 
+
 # Pairs that must be ordered: (smaller key, larger key).
 ORDERED: tuple[tuple[str, str], ...] = (
     ("orb.fast_threshold_min", "orb.fast_threshold"),
