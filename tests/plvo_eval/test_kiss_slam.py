@@ -18,7 +18,7 @@ from plvo.data.registry import open_dataset, parse_frames
 from plvo.data.trajectory import write_kitti_poses
 from plvo_app.cli import main
 from plvo_eval.kiss import KissOptions, lidar_to_cam0, run_kiss
-from plvo_eval.kiss_slam import _quiet, run_kiss_slam
+from plvo_eval.kiss_slam import KissSlamOptions, _quiet, run_kiss_slam
 from plvo_eval.report import build_report, report_json, report_markdown
 from plvo_eval.runner import SequenceSource, build_specs, with_threads
 from plvo_eval.tasks import AS_DELIVERED, CORRECTED, DESKEWED, NOT_DESKEWED, RunSpec, TaskResult, anchor
@@ -200,7 +200,10 @@ def write_block_loop(root: Path, name: str = "00", n_frames: int = LOOP_FRAMES, 
 def block_runs(tmp_path_factory):
     root = write_block_loop(tmp_path_factory.mktemp("block"))
     dataset = open_dataset(root, "00")
-    return dataset, run_kiss_slam(dataset), run_kiss(dataset, KissOptions())
+    # one thread each: with all cores their registrations may sum over threads in another order from run to run, and
+    # one run of the suite (a clean clone, 2026-12-07) found no closure where every other found both
+    slam = run_kiss_slam(dataset, KissSlamOptions(max_threads=1))
+    return dataset, slam, run_kiss(dataset, KissOptions(max_threads=1))
 
 
 def test_a_loop_round_the_block_is_closed_and_shows_in_the_trajectory(block_runs):
