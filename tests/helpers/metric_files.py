@@ -15,7 +15,7 @@ N = 150
 TIMES = 1000.0 + 0.1037 * np.arange(N)  # KITTI-like: not exactly 10 Hz, and far from 0
 
 
-def _drive(n: int = N) -> np.ndarray:
+def weaving_drive(n: int = N) -> np.ndarray:
     """1 m a frame in KITTI's cam0 (x right, y down, z ahead), weaving left and right, gently up and down."""
     poses, p = [], np.zeros(3)
     for k in range(n):
@@ -26,7 +26,7 @@ def _drive(n: int = N) -> np.ndarray:
     return np.stack(poses)
 
 
-def _estimate(gt: np.ndarray, seed: int = 1, scale: float = 1.01) -> np.ndarray:
+def noisy_estimate(gt: np.ndarray, seed: int = 1, scale: float = 1.01) -> np.ndarray:
     rng = np.random.default_rng(seed)
     est = gt.copy()
     est[:, :3, 3] *= scale
@@ -34,11 +34,12 @@ def _estimate(gt: np.ndarray, seed: int = 1, scale: float = 1.01) -> np.ndarray:
     return np.stack([T @ se3.exp(xi) for T, xi in zip(est, noise)])
 
 
-GT = _drive()
-EST = _estimate(GT)
+GT = weaving_drive()
+EST = noisy_estimate(GT)
 
 
-def _results(folder: Path, frames, fmt: str = "kitti", truth: bool = True, est: np.ndarray = EST, **summary) -> Path:
+def results_folder(folder: Path, frames, fmt: str = "kitti", truth: bool = True, est: np.ndarray = EST,
+                   **summary) -> Path:
     """A results folder as plvo-viz leaves it: poses.txt, summary.json and truth.txt of the run's frames."""
     idx = list(frames)
     folder.mkdir(parents=True)

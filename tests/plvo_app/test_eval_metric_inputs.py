@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from faults_table import fault
-from metric_files import EST, GT, TIMES, N, _estimate, _results
+from metric_files import EST, GT, TIMES, N, noisy_estimate, results_folder
 
 from plvo.data.trajectory import write_poses
 from plvo.errors import TrajectoryError
@@ -166,7 +166,7 @@ def test_too_few_pairs_in_time_is_one_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("frames", [range(0, 51), range(30, 100)])
 def test_a_partial_run_against_the_whole_truth_is_the_run_against_its_part(kitti_root, tmp_path, capsys, frames):
-    run = _results(tmp_path / "results" / "run", frames)
+    run = results_folder(tmp_path / "results" / "run", frames)
     idx = list(frames)
     write_poses(tmp_path / "head.txt", GT[idx], TIMES[idx], "kitti")  # what `head -51` (or sed 31,100p) makes
     ref = _json(capsys, "--gt", tmp_path / "head.txt", "--est", run / "poses.txt")
@@ -184,7 +184,7 @@ def test_a_partial_run_against_the_whole_truth_is_the_run_against_its_part(kitti
 
 
 def test_a_tum_run_folder_is_paired_by_time_with_a_kitti_truth(kitti_root, tmp_path, capsys):
-    run = _results(tmp_path / "run", range(40, 120), fmt="tum")
+    run = results_folder(tmp_path / "run", range(40, 120), fmt="tum")
     write_poses(tmp_path / "part.txt", GT[40:120], TIMES[40:120], "kitti")
     ref = _json(capsys, "--gt", tmp_path / "part.txt", "--est", run / "poses.txt")
     out = _json(capsys, "--gt", kitti_root / "poses" / "00.txt", "--est", run)
@@ -196,7 +196,7 @@ def test_a_tum_run_folder_is_paired_by_time_with_a_kitti_truth(kitti_root, tmp_p
 def test_missing_pieces_are_one_line(kitti_root, tmp_path, capsys):
     row = fault("metric-no-truth")
     gt = kitti_root / "poses" / "00.txt"
-    no_truth = _results(tmp_path / "no_truth", range(0, 30), truth=False)
+    no_truth = results_folder(tmp_path / "no_truth", range(0, 30), truth=False)
     line = _refused(capsys, "--est", no_truth)
     assert line == f"error: {no_truth}: {row.message}" and row.exit == 2
     assert main(["eval", "metric", "--est", str(no_truth), "--gt", str(gt)]) == 0  # --gt is the way out
@@ -207,13 +207,13 @@ def test_missing_pieces_are_one_line(kitti_root, tmp_path, capsys):
     assert f"{failed}: no poses.txt (the run's status is 'failed'" in line
     line = _refused(capsys, "--est", tmp_path, "--gt", gt)
     assert f"{tmp_path}: no poses.txt (not a plvo results folder" in line
-    wrong = _results(tmp_path / "wrong", range(0, 30))
+    wrong = results_folder(tmp_path / "wrong", range(0, 30))
     (wrong / "summary.json").write_text(json.dumps({"run": "wrong", "frame_indices": list(range(29))}))
     line = _refused(capsys, "--est", wrong, "--gt", gt)
     assert f"{wrong / 'summary.json'}: 'frame_indices' lists 29 frames, but {wrong / 'poses.txt'} has 30" in line
     (wrong / "summary.json").write_text("{not json")
     assert f"{wrong / 'summary.json'}: not JSON" in _refused(capsys, "--est", wrong, "--gt", gt)
-    beyond = _results(tmp_path / "beyond", range(0, 30))
+    beyond = results_folder(tmp_path / "beyond", range(0, 30))
     write_poses(tmp_path / "short_gt.txt", GT[:20], TIMES[:20], "kitti")
     line = _refused(capsys, "--est", beyond, "--gt", tmp_path / "short_gt.txt")
     assert f"{tmp_path / 'short_gt.txt'}: 20 poses (frames 0..19), but {beyond / 'poses.txt'} holds frame 29" in line
@@ -249,7 +249,7 @@ def test_what_to_give_is_named(kitti_root, tmp_path, capsys):
     (kitti_root / "sequences" / "00" / "times.txt").write_text("0.0\n0.1\n")
     line = _refused(capsys, "--gt", kitti_root / "poses" / "00.txt", "--est", tmp_path / "est_tum.txt")
     assert "times.txt: 2 times for 150 poses (found beside" in line and "--gt-times" in line
-    run = _results(tmp_path / "run", range(0, 30))
+    run = results_folder(tmp_path / "run", range(0, 30))
     line = _refused(capsys, "--gt", tmp_path / "gt.txt", "--est", run, "--frames", "0:30")
     assert "--frames 0:30: every --est is a results folder" in line
     (tmp_path / "seven.txt").write_text("1 2 3 4 5 6 7\n")
@@ -269,8 +269,8 @@ def test_times_beside_a_kitti_truth(kitti_root, tmp_path):
 
 def test_several_runs_a_row_each(kitti_root, tmp_path, capsys):
     gt = kitti_root / "poses" / "00.txt"
-    a = _results(tmp_path / "results" / "a", range(0, 51))
-    b = _results(tmp_path / "results" / "b", range(20, 150), est=_estimate(GT, seed=2, scale=0.98))
+    a = results_folder(tmp_path / "results" / "a", range(0, 51))
+    b = results_folder(tmp_path / "results" / "b", range(20, 150), est=noisy_estimate(GT, seed=2, scale=0.98))
     write_poses(tmp_path / "other.txt", EST, TIMES, "tum")
     runs = ["--est", a, "--est", b, "--est", tmp_path / "other.txt"]
     singles = [_json(capsys, "--gt", gt, "--est", e) for e in (a, b, tmp_path / "other.txt")]

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from metric_files import EST, GT, TIMES, _estimate, _results
+from metric_files import EST, GT, TIMES, noisy_estimate, results_folder
 
 from plvo.data.trajectory import write_poses
 from plvo.geometry import se3
@@ -25,8 +25,8 @@ def _image(path):
 
 
 def test_plots_of_several_runs(tmp_path, capsys):
-    a = _results(tmp_path / "a", range(0, 80))
-    b = _results(tmp_path / "b", range(50, 150), est=_estimate(GT, seed=2, scale=0.97))
+    a = results_folder(tmp_path / "a", range(0, 80))
+    b = results_folder(tmp_path / "b", range(50, 150), est=noisy_estimate(GT, seed=2, scale=0.97))
     write_poses(tmp_path / "gt.txt", GT, TIMES, "kitti")
     plots = tmp_path / "plots" / "new"  # made as needed
     capsys.readouterr()
