@@ -36,6 +36,7 @@ from plvo.config import BackendConfig, RegistrationConfig
 from plvo.errors import PlvoError
 from plvo.geometry import se3
 from plvo.lidar.registration import zeta_from_errors
+from plvo.lidar.voxels import voxel_means
 
 _REG = o3d.pipelines.registration
 _NORMAL_NEIGHBOURS = 10  # as plvo.lidar.registration's targets
@@ -156,12 +157,12 @@ class LocalMap:
             parts = [(e.T_world_lidar, *e.downsampled(self.voxel_m)) for e in self._entries]
             pts = np.concatenate([se3.transform_points(T, p) for T, p, _ in parts])
             nrm = np.concatenate([n @ T[:3, :3].T for T, _, n in parts])
-            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            pc.normals = o3d.utility.Vector3dVector(nrm)
             # where scans overlap, a voxel's normal is the mean of theirs (their signs are each scan's own: a
-            # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign)
-            pc = pc.voxel_down_sample(self.voxel_m)
-            pc.normalize_normals()
+            # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign); open3d's
+            # voxel_down_sample's values, a fifth of its time (plvo.lidar.voxels)
+            means, normals = voxel_means(pts, self.voxel_m, nrm)
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(means))
+            pc.normals = o3d.utility.Vector3dVector(normals)
             # sliding-midpoint splits without node shrinking: under half the balanced tree's build time, the same
             # nearest neighbours (exact either way); the tree is rebuilt at every placement, once a keyframe
             self._built = (pc, cKDTree(np.asarray(pc.points), balanced_tree=False, compact_nodes=False))
