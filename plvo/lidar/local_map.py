@@ -161,6 +161,7 @@ class LocalMap:
             # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign); open3d's
             # voxel_down_sample's values, a fifth of its time (plvo.lidar.voxels)
             means, normals = voxel_means(pts, self.voxel_m, nrm)
+            assert normals is not None
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(means))
             pc.normals = o3d.utility.Vector3dVector(normals)
             # sliding-midpoint splits without node shrinking: under half the balanced tree's build time, the same
