@@ -159,7 +159,7 @@ class LocalMap:
             nrm = np.concatenate([n @ T[:3, :3].T for T, _, n in parts])
             # where scans overlap, a voxel's normal is the mean of theirs (their signs are each scan's own: a
             # normal is turned towards its scan's sensor, so two scans' normals of a surface agree in sign); open3d's
-            # voxel_down_sample's values, a fifth of its time (plvo.lidar.voxels)
+            # voxel_down_sample's values, in four fifths of its time (plvo.lidar.voxels)
             means, normals = voxel_means(pts, self.voxel_m, nrm)
             assert normals is not None
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(means))
