@@ -19,19 +19,11 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
+from plvo.data.trajectory import read_kitti_poses
 from plvo_eval.kitti_metric import SHORT_LENGTHS, segment_errors
 from plvo_eval.splits import DEVELOPMENT, HELD_OUT, twin_split
 
 FIGURES = {"t_err_pct": "devkit", "r_err_deg_per_m": "devkit", "short_t_err_pct": "short"}
-
-
-def _poses(path: Path) -> np.ndarray:
-    rows = np.loadtxt(path).reshape(-1, 3, 4)
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :] = rows
-    return T
 
 
 def main() -> None:
@@ -55,7 +47,7 @@ def main() -> None:
     twins = sorted({t for by_system in rows["t_err_pct"].values() for t in by_system})
     counts = {}
     for twin in twins:
-        truth = _poses(args.kitti_poses / f"{twin[len('twin'):]}.txt")
+        truth = read_kitti_poses(args.kitti_poses / f"{twin[len('twin'):]}.txt")
         counts[twin] = {"devkit": len(segment_errors(truth, truth).length),
                         "short": len(segment_errors(truth, truth, SHORT_LENGTHS, 1).length)}
     groups = {DEVELOPMENT: [t for t in twins if twin_split(t) == DEVELOPMENT],
