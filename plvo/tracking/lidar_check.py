@@ -3,7 +3,7 @@
 A camera and a lidar see the same motion twice. The tracker asks the lidar (plvo.tracking.frontend) at every
 keyframe and whenever the visual estimate has reason to be doubted: no motion model yet, a step far from the
 motion model's, a rescue or a loss, a gap in the frame times, an image identical to the previous one. A keyframe's
-quick look costs ~7 ms on KITTI 04, a thorough registration ~20-40 ms, so none is done at frames nothing calls into
+quick look costs ~5 ms on KITTI 04, a thorough registration ~20-40 ms, so none is done at frames nothing calls into
 doubt.
 
 Registration: point-to-plane ICP (open3d, Tukey kernel) on scans downsampled to `crosscheck.voxel_m`, a wide pass
@@ -84,21 +84,22 @@ class LidarOdometer:
         self.cfg = cfg
         self._T_cam_velo = np.asarray(T_cam_velo, float)
         self._T_velo_cam = se3.inv(self._T_cam_velo)
-        self._cache: dict[int, o3d.geometry.PointCloud] = {}
+        # each scan downsampled once for each grade of check it takes part in: thorough or quick (_GRADES)
+        self._cache: dict[bool, dict[int, o3d.geometry.PointCloud]] = {True: {}, False: {}}
 
-    def _prepared(self, index: int, scan: np.ndarray) -> o3d.geometry.PointCloud:
-        cloud = self._cache.get(index)
+    def _prepared(self, index: int, scan: np.ndarray, thorough: bool = True) -> o3d.geometry.PointCloud:
+        cache = self._cache[thorough]
+        cloud = cache.get(index)
         if cloud is None:
-            # ~30 000 returns are plenty for 1.5 m voxels (a quarter of an HDL-64E's: 4x cheaper, within 3 cm)
-            xyz = np.asarray(scan[:: max(1, len(scan) // _RETURNS), :3], float)
+            returns, neighbours = _GRADES[thorough]
+            xyz = np.asarray(scan[:: max(1, len(scan) // returns), :3], float)
             r2 = np.einsum("ij,ij->i", xyz, xyz)
             xyz = xyz[(r2 > self.cfg.min_range_m ** 2) & (r2 < self.cfg.max_range_m ** 2)]
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz)).voxel_down_sample(self.cfg.voxel_m)
-            # 10 neighbours: a voxel's plane in 1.5 m voxels (20 within 4.5 m cost 1.2 ms more a scan, same answers)
-            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
-            if len(self._cache) >= 4:
-                self._cache.pop(min(self._cache))
-            self._cache[index] = cloud
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+            if len(cache) >= 4:
+                cache.pop(min(cache))
+            cache[index] = cloud
         return cloud
 
     def _icp(self, a: o3d.geometry.PointCloud, b: o3d.geometry.PointCloud, init: np.ndarray, radius: float
@@ -114,10 +115,10 @@ class LidarOdometer:
         the first guess (a keyframe's check, where the camera's motion is usually right; the tracker follows a
         disagreeing quick look with a thorough one, plvo.tracking.frontend.Frontend._check)."""
         t0 = time.perf_counter()
-        a, b = self._prepared(*src), self._prepared(*dst)
+        a, b = self._prepared(*src, thorough), self._prepared(*dst, thorough)
         v = self.cfg.voxel_m
         best = None
-        # a keyframe's quick look moves a thinned source (its ICP costs by the source point: ~1500 of ~3500 halve it)
+        # a keyframe's quick look moves a thinned source (its ICP costs by the source point: ~800 of ~3000 a third)
         src_points = a if thorough or len(a.points) <= _QUICK_SOURCE else \
             a.uniform_down_sample(int(np.ceil(len(a.points) / _QUICK_SOURCE)))
         for guess in guesses if thorough else guesses[:1]:
@@ -140,8 +141,17 @@ class LidarOdometer:
 
 
 _CONVERGED = _REG.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=30)
-_RETURNS = 30000  # a scan thinned to about this many returns before its 1.5 m voxels
-_QUICK_SOURCE = 1500
+# A scan thinned to about this many returns before its 1.5 m voxels, and the neighbours of their normals, for a
+# thorough check (True) and a keyframe's quick look (False). ~30 000 returns are plenty for 1.5 m voxels (a quarter
+# of an HDL-64E's: 4x cheaper, within 3 cm) and 10 neighbours a voxel's plane (20 within 4.5 m cost 1.2 ms more a
+# scan, the same answers). The quick look, at every keyframe, only has to tell a camera within 0.3 m + 10 % and
+# 1.5 deg of the lidar from one that is not (a disagreement is looked at again thoroughly): on the real frames of
+# KITTI 04, 16 keyframe intervals 3 frames apart, from the truth's motion put 0.11 m and 0.17 deg off, 12 000
+# returns, 6 neighbours and 800 source points come within 0.07 m (largest 0.12) and 0.08 deg (0.18) of the truth,
+# as the thorough grade's scans did with a 1500-point source (0.09 m, largest 0.14, and 0.08 deg, 0.12), in ~5 ms
+# a keyframe against ~10 (single-threaded, beside other work)
+_GRADES = {True: (30000, 10), False: (12000, 6)}
+_QUICK_SOURCE = 800
 
 
 def _conditioning(src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, T_dst_src: np.ndarray,
