@@ -81,6 +81,9 @@ def zeta_colors(zeta: np.ndarray, kind: np.ndarray) -> np.ndarray:
     return colors
 
 
+_EMPTY = 1 << 16  # RangeFaces.encode's empty pixel, above every uint16 count
+
+
 @dataclass(frozen=True)
 class RangeFaces:
     """A keyframe's scan thinned for every recording level: z-buffered into the depth images of `n` virtual pinhole
@@ -154,12 +157,13 @@ class RangeFaces:
             u = np.floor(cam[:, 0] / cam[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
             v = np.floor(cam[:, 1] / cam[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
             inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            # the nearest point of each pixel: the smallest of its (pixel, count) keys
-            key = np.sort((v[inside] * w + u[inside]) << 16 | self.counts(cam[inside, 2]))
-            first = np.diff(key >> 16, prepend=-1) != 0
-            img = np.zeros(h * w, np.uint16)
-            img[key[first] >> 16] = key[first] & 0xFFFF
-            out.append(cv2.imencode(".png", img.reshape(h, w), _PNG_RLE)[1].tobytes())
+            # the nearest point of each pixel: its smallest count, by an unbuffered minimum in uint32 (numpy's fast
+            # path wants one dtype; 2^16, above every count, marks an empty pixel): the same images as sorting the
+            # (pixel, count) keys, the whole encoding 2.2 ms a KITTI 04 keyframe against 3.0
+            img = np.full(h * w, _EMPTY, np.uint32)
+            np.minimum.at(img, v[inside] * w + u[inside], self.counts(cam[inside, 2]).astype(np.uint32))
+            img[img == _EMPTY] = 0
+            out.append(cv2.imencode(".png", img.astype(np.uint16).reshape(h, w), _PNG_RLE)[1].tobytes())
         return out
 
 
