@@ -221,7 +221,7 @@ class Frontend:
             self._keep_twist(frame.index)
         self._last_input = frame
         if self.offset is not None:
-            self.offset.frame(frame.time, res.T_world_cam[:3, :3])
+            self.offset.frame(frame.time, res.T_world_cam[:3, :3], own=res.source == CAMERA)
         self.checks.source(res.source)
         self.checks.frame_done(frame.index)
         timings["total"] = time.perf_counter() - t0
