@@ -95,7 +95,7 @@ class TimeOffsetEstimator:
 
     def _usable(self, t_first: float, t_last: float) -> bool:
         """No frame not the camera's own where the interval's shifted span reads the camera's orientation (a frame
-        period beyond +-max_s), nor within _SETTLE_S before its start."""
+        period beyond +-max_s), nor within _SETTLE_S before that span."""
         lo, hi = t_first - self.max_s - _SETTLE_S, t_last + self.max_s + _FRAME_S
         return not any(lo <= t <= hi for t in self._untrusted)
 
