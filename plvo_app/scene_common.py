@@ -143,11 +143,12 @@ class RangeFaces:
         c = np.where(far, 2 * np.round(z / (2 * self.unit)), np.round(z / self.unit))
         return np.clip(c, 1, 65535).astype(np.uint16)
 
-    def encode(self, scan: np.ndarray) -> list[bytes]:
-        """(N,3) lidar-frame points -> one 16-bit PNG a face (0: no return in that pixel)."""
+    def returns(self, scan: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(N,3) lidar-frame points -> for each face, the (K,) pixels (row-major) its returns land in and their
+        (K,) depth counts: the scan thinned to max_points, each face projecting only its sector's points (and a
+        margin: its image reaches a little past it)."""
         K, (w, h) = self.K, self.size
         pts = np.asarray(scan[thin(len(scan), self.max_points), :3], float)
-        # Each face projects only the points of its sector (and a margin: its image reaches a little past it)
         margin = np.hypot(pts[:, 0], pts[:, 1]) * np.cos(min(np.pi / self.n + np.radians(3.0 * self.deg), np.pi))
         out = []
         for k in range(self.n):
@@ -157,11 +158,19 @@ class RangeFaces:
             u = np.floor(cam[:, 0] / cam[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
             v = np.floor(cam[:, 1] / cam[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
             inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            out.append((v[inside] * w + u[inside], self.counts(cam[inside, 2])))
+        return out
+
+    def encode(self, scan: np.ndarray) -> list[bytes]:
+        """(N,3) lidar-frame points -> one 16-bit PNG a face (0: no return in that pixel)."""
+        w, h = self.size
+        out = []
+        for pixel, count in self.returns(scan):
             # the nearest point of each pixel: its smallest count, by an unbuffered minimum in uint32 (numpy's fast
             # path wants one dtype; 2^16, above every count, marks an empty pixel): the same images as sorting the
             # (pixel, count) keys, the whole encoding 2.2 ms a KITTI 04 keyframe against 3.0
             img = np.full(h * w, _EMPTY, np.uint32)
-            np.minimum.at(img, v[inside] * w + u[inside], self.counts(cam[inside, 2]).astype(np.uint32))
+            np.minimum.at(img, pixel, count.astype(np.uint32))
             img[img == _EMPTY] = 0
             out.append(cv2.imencode(".png", img.astype(np.uint16).reshape(h, w), _PNG_RLE)[1].tobytes())
         return out

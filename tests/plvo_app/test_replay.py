@@ -213,24 +213,15 @@ def test_the_faces_keep_each_pixels_nearest_return_of_a_real_scan(kitti_root):
     """On a real KITTI 04 scan each face's pixel holds the smallest depth count of the returns it sees, as a plain
     z-buffer computed here by sorting the (pixel, count) keys gives it, and no pixel without a return has one."""
     from plvo.data.registry import open_dataset
-    from plvo_app.scene_common import RangeFaces, thin
+    from plvo_app.scene_common import RangeFaces
 
     faces = RangeFaces()
     scan = open_dataset(kitti_root, "04", slice(0, 1))[0].scan
-    pngs = faces.encode(scan)
-    K, (w, h) = faces.K, faces.size
-    pts = np.asarray(scan[thin(len(scan), faces.max_points), :3], float)
+    w, h = faces.size
     seen = 0
-    for k, png in enumerate(pngs):
+    for png, (pixel, count) in zip(faces.encode(scan), faces.returns(scan), strict=True):
         got = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED).ravel()
-        a = 2 * np.pi * k / faces.n
-        margin = np.hypot(pts[:, 0], pts[:, 1]) * np.cos(np.pi / faces.n + np.radians(3.0 * faces.deg))
-        cam = pts[pts[:, 0] * np.cos(a) + pts[:, 1] * np.sin(a) > margin] @ faces.R_velo_face(k)
-        cam = cam[cam[:, 2] > 0.5]
-        u = np.floor(cam[:, 0] / cam[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
-        v = np.floor(cam[:, 1] / cam[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        key = np.sort((v[inside] * w + u[inside]) << 16 | faces.counts(cam[inside, 2]).astype(np.int64))
+        key = np.sort(pixel << 16 | count.astype(np.int64))
         first = np.diff(key >> 16, prepend=-1) != 0
         want = np.zeros(h * w, np.uint16)
         want[key[first] >> 16] = key[first] & 0xFFFF
