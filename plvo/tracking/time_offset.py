@@ -15,6 +15,7 @@ steady speed never is: the estimate is then withheld, not guessed).
 
 from __future__ import annotations
 
+from bisect import bisect_left
 from collections import deque
 from dataclasses import dataclass
 
@@ -68,7 +69,7 @@ class TimeOffsetEstimator:
         self._times: deque[float] = deque()
         self._rots: deque[np.ndarray] = deque()
         self._intervals: deque[tuple[float, float, np.ndarray]] = deque(maxlen=_WINDOW)
-        self._untrusted: deque[float] = deque()  # times of frames whose orientation was not the camera's own
+        self._untrusted: list[float] = []  # times (increasing) of frames whose orientation was not the camera's own
         self._n = 0
 
     def frame(self, time_s: float, R_world_cam: np.ndarray, own: bool = True) -> None:
@@ -90,14 +91,14 @@ class TimeOffsetEstimator:
         while len(self._times) > 2 and self._times[1] < oldest:  # frames no interval in the window reaches
             self._times.popleft()
             self._rots.popleft()
-        while self._untrusted and self._untrusted[0] < oldest - _SETTLE_S:
-            self._untrusted.popleft()
+        del self._untrusted[:bisect_left(self._untrusted, oldest - _SETTLE_S)]
 
     def _usable(self, t_first: float, t_last: float) -> bool:
         """No frame not the camera's own where the interval's shifted span reads the camera's orientation (a frame
         period beyond +-max_s), nor within _SETTLE_S before that span."""
         lo, hi = t_first - self.max_s - _SETTLE_S, t_last + self.max_s + _FRAME_S
-        return not any(lo <= t <= hi for t in self._untrusted)
+        i = bisect_left(self._untrusted, lo)  # the first at or after lo
+        return i == len(self._untrusted) or self._untrusted[i] > hi
 
     @property
     def n_intervals(self) -> int:
