@@ -475,7 +475,7 @@ class Frontend:
                   why: str, timings: dict[str, float], corr: Correspondences | None = None) -> FrontendResult:
         """The lidar's pose for this frame (the camera disagreed and could not be matched again from it), with
         landmarks made anew from the lidar's depth, as after a tracking loss."""
-        T = se3.orthonormalize(T_src @ lidar.T_camprev_camcur)  # see LidarOdometer.motion: rigid, not nearly
+        T = T_src @ lidar.T_camprev_camcur
         self.checks.note(frame.index, "camera overruled by the lidar", f"{why}; poses from the lidar "
                          f"({lidar.step_m:.2f} m since the check's start), landmarks made anew from its depth")
         msg = f"frame {frame.index}: camera overruled by the lidar ({why}); re-initialised from the lidar's depth"
@@ -488,7 +488,7 @@ class Frontend:
               timings: dict[str, float]) -> FrontendResult:
         """A repeated image while the lidar moves (a frozen camera): the lidar's pose, no keyframe, and the next
         image tracked against the last real one, predicted from here."""
-        T = se3.orthonormalize(base @ lidar.T_camprev_camcur)  # see LidarOdometer.motion: rigid, not nearly
+        T = base @ lidar.T_camprev_camcur
         self._held, self._velocity = T, lidar.T_camprev_camcur
         self.checks.note(frame.index, "frozen image", f"the image repeats the one before while the lidar moves "
                          f"({lidar.step_m:.2f} m a frame): poses from the lidar")
