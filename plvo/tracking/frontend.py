@@ -66,6 +66,7 @@ log = logging.getLogger(__name__)
 INITIALISED, TRACKED, REINITIALISED = "initialised", "tracked", "reinitialised"
 OVERRULED = "overruled"  # the camera's estimate disagreed with the lidar's: the pose is the lidar's (lidar_check)
 HELD = "held"  # the image repeats the previous one while the lidar moves: the pose is the lidar's
+NO_MOTION_MODEL = "no motion model yet"  # a doubt of a first step (after a start or a re-initialisation)
 _NONE = np.zeros(0)  # no PnPL residuals (nothing solved); read-only like every result's arrays
 
 
@@ -308,13 +309,13 @@ class Frontend:
             timings["search"] = time.perf_counter() - t
             step = se3.inv(base) @ T
             dm, ddeg = disagreement(velocity, step)
-            if not self._motion_known:
-                doubts.append("no motion model yet")
-            if dm > cc.doubt_m + cc.doubt_share * np.linalg.norm(velocity[:3, 3]) or ddeg > cc.doubt_deg:
+            if not self._motion_known:  # then the "motion model" is a placeholder: a step far from it says nothing
+                doubts.append(NO_MOTION_MODEL)
+            elif dm > cc.doubt_m + cc.doubt_share * np.linalg.norm(velocity[:3, 3]) or ddeg > cc.doubt_deg:
                 doubts.append(f"{dm:.2f} m / {ddeg:.1f} deg from the motion model")
             is_kf = self.policy.decide(frame.index, T, int(p_in.sum() + l_in.sum())).is_keyframe
             if lidar_ok and (doubts or (is_kf and cc.at_keyframes)):
-                found = self._check(frame, feats, prev, base, T, velocity, bool(doubts), timings)
+                found = self._check(frame, feats, prev, base, T, velocity, doubts, timings)
                 if isinstance(found, FrontendResult):
                     return found
                 if found is not None:
@@ -367,6 +368,8 @@ class Frontend:
             guesses = [se3.inv(E_src) @ g @ E_dst for g in guesses]
         motion = self._lidar.motion((src.index, src.scan), (dst.index, dst.scan), guesses, thorough)
         timings["crosscheck"] = timings.get("crosscheck", 0.0) + motion.time_s
+        if thorough:  # the frames that needed more than a quick look, and what those cost
+            timings["crosscheck_thorough"] = timings.get("crosscheck_thorough", 0.0) + motion.time_s
         if ends is None:
             return motion
         return dataclasses.replace(motion, T_camprev_camcur=ends[0] @ motion.T_camprev_camcur @ se3.inv(ends[1]),
@@ -390,23 +393,27 @@ class Frontend:
         return se3.exp(self._offset_s * self._twists[src_index]), se3.exp(self._offset_s * self._twists[last.index])
 
     def _check(self, frame: Frame, feats: FeatureSet, prev: _FrameState, base: np.ndarray, T: np.ndarray,
-               velocity: np.ndarray, doubted: bool, timings: dict[str, float]) -> Any:
+               velocity: np.ndarray, doubts: list[str], timings: dict[str, float]) -> Any:
         """The camera's pose T checked against the lidar: over the last frame's interval when the estimate is in
         doubt, else (at a keyframe) since the newest keyframe. None: they agree (or the lidar cannot judge, or only
         the rotation disagrees); the camera's solution matched again from the lidar's motion (`_seeded`); or the
         result with the lidar's own pose (`_overrule`)."""
         kf = self._last_kf_input
-        if doubted or kf is None or self._last_kf_id < 0:
+        if doubts or kf is None or self._last_kf_id < 0:
             assert self._last_input is not None
             src, T_src, guesses = self._last_input, base, [se3.inv(base) @ T, velocity, np.eye(4)]
         else:
             T_src = self.map.keyframe_pose(self._last_kf_id)
             src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
-        lidar = self._lidar_motion(src, frame, guesses, timings, thorough=doubted)
+        # A first step is doubted only because nothing predicted it: a quick look from the camera's motion confirms a
+        # right one (a wrong one disagrees and is looked at thoroughly, as at a keyframe). A thorough look there cost
+        # a run's start ~30 ms of CPU and, while the workers still start up, 50-80 ms of waiting (real KITTI 04).
+        thorough = bool(doubts) and doubts != [NO_MOTION_MODEL]
+        lidar = self._lidar_motion(src, frame, guesses, timings, thorough=thorough)
         if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
             self._estimate_offset(frame, src.time, lidar)
             return None
-        if not doubted:  # a quick look disagreed: a thorough one before the camera is called wrong
+        if not thorough:  # a quick look disagreed: a thorough one before the camera is called wrong
             lidar = self._lidar_motion(src, frame, guesses, timings)
         if not lidar.usable or agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
             return None

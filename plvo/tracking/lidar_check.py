@@ -1,10 +1,10 @@
 """The camera's motion checked against the lidar's: a scan-to-scan registration of the same interval, on demand.
 
 A camera and a lidar see the same motion twice. The tracker asks the lidar (plvo.tracking.frontend) at every
-keyframe and whenever the visual estimate has reason to be doubted: no motion model yet, a step far from the
-motion model's, a rescue or a loss, a gap in the frame times, an image identical to the previous one. A keyframe's
-quick look costs ~5 ms on KITTI 04, a thorough registration ~20-40 ms, so none is done at frames nothing calls into
-doubt.
+keyframe and whenever the visual estimate has reason to be doubted: a step far from the motion model's, a rescue or
+a loss, a gap in the frame times, an image identical to the previous one (and at the first step, with no motion
+model yet, a quick look first). A keyframe's quick look costs ~5 ms on KITTI 04, a thorough registration ~20-40 ms,
+so none is done at frames nothing calls into doubt.
 
 Registration: point-to-plane ICP (open3d, Tukey kernel) on scans downsampled to `crosscheck.voxel_m`, a wide pass
 (correspondences up to 3 voxels) then a tight one (1 voxel), from each guess in turn (the camera's motion, the

@@ -50,6 +50,8 @@ def test_normal_case_is_unchanged_by_the_check(kitti_root, normal_run):
     assert out.trust["findings"] == {}, out.trust
     assert out.trust["frames_by_source"]["camera"] == 51
     assert len(out.timings.get("crosscheck", [])) >= out.n_keyframes - 1  # every keyframe after the first asked
+    # and every look a quick one: the first step's too (no motion model yet, but the camera's motion agrees)
+    assert not out.timings.get("crosscheck_thorough"), out.timings["crosscheck_thorough"]
     _, off = _run(kitti_root, slice(0, 51), enabled=False)
     np.testing.assert_allclose(out.poses, off.poses, atol=1e-9)
     assert _max_error(ds, out.poses) < 0.4  # 0.31 m: the truth's heading offset over 66 m
@@ -65,6 +67,7 @@ def test_fast_motion_is_tracked_within_kiss_icps_error(kitti_root, stride):
     err = _max_error(ds, out.poses)
     assert err <= 1.5 * kiss, (err, kiss)
     assert _kinds(out) & {"camera corrected by the lidar", "camera overruled by the lidar"}, out.trust
+    assert out.timings.get("crosscheck_thorough")  # the first step's quick look disagreed: looked at thoroughly
     if stride == 3:
         _, off = _run(kitti_root, slice(0, 51, stride), enabled=False)
         assert _max_error(ds, off.poses) > 5.0  # the failure the check removes
