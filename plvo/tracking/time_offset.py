@@ -76,16 +76,21 @@ class TimeOffsetEstimator:
         """A frame's orientation; own: the camera's own tracking gave it (not the lidar, nor a guess)."""
         if self._times and not time_s > self._times[-1]:
             return  # the interpolation needs increasing times; a repeated time adds nothing
+        R = np.array(R_world_cam, float)
+        if not _is_rotation(R):  # a broken pose (a fault upstream) is no orientation: left out with what reads it
+            self._untrusted.append(float(time_s))
+            return
         self._times.append(float(time_s))
-        self._rots.append(np.array(R_world_cam, float))
+        self._rots.append(R)
         if not own:
             self._untrusted.append(float(time_s))
 
     def interval(self, t_first: float, t_last: float, R_lidar: np.ndarray) -> None:
         """The lidar's rotation (camera frame, first -> last) between the scans paired with two frames' times."""
-        if not t_last > t_first:
+        R = np.array(R_lidar, float)
+        if not t_last > t_first or not _is_rotation(R):
             return
-        self._intervals.append((float(t_first), float(t_last), np.array(R_lidar, float)))
+        self._intervals.append((float(t_first), float(t_last), R))
         self._n += 1
         oldest = self._intervals[0][0] - self.max_s - 1.0
         while len(self._times) > 2 and self._times[1] < oldest:  # frames no interval in the window reaches
@@ -152,6 +157,14 @@ class TimeOffsetEstimator:
         spread = _rate_spread(times, slerp)
         return OffsetEstimate(offset, sigma, n, bool(sigma < self.sigma_bound_s and spread >= MIN_RATE_SPREAD_DEG_S),
                               spread)
+
+
+def _is_rotation(R: np.ndarray) -> bool:
+    """A finite proper rotation to 1e-3 (far looser than any pose's rounding; scipy's Rotation.from_matrix projects
+    what is near one, but a NaN matrix fails its SVD and a left-handed one raises), so that one broken pose cannot
+    end a run when its summary estimates."""
+    return R.shape == (3, 3) and bool(np.isfinite(R).all()) and bool(np.abs(R @ R.T - np.eye(3)).max() < 1e-3) \
+        and np.linalg.det(R) > 0
 
 
 def _rate_spread(times: np.ndarray, slerp: Slerp) -> float:

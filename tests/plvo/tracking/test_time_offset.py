@@ -77,6 +77,27 @@ def test_frames_not_the_cameras_own_are_left_out():
     assert left_out.n_intervals < kept.n_intervals
 
 
+def test_broken_rotations_are_left_out_not_raised():
+    """A frame's pose or a lidar interval that is no rotation (NaN, a reflection, a scaled matrix: a fault upstream)
+    is left out, with the intervals reading near that frame, and the estimate still recovers the offset; scipy
+    would fail on it (an SVD that does not converge, a non-positive determinant) and end the run at its summary."""
+    clean = _estimator(0.1, turning=True)
+    est = TimeOffsetEstimator(max_s=0.2, sigma_bound_s=0.01)
+    rng = np.random.default_rng(1)
+    times = np.arange(0.0, 10.0, DT)
+    for i, t in enumerate(times):
+        R = Rotation.from_rotvec([0.0, _yaw(np.array([t]), True)[0], 0.0]).as_matrix()
+        est.frame(t, {20: np.full((3, 3), np.nan), 70: -R, 85: 2.0 * R}.get(i, R))
+    for a, b in zip(times[:-3:3], times[3::3]):
+        ya, yb = _yaw(np.array([a + 0.1, b + 0.1]), True)
+        noise = Rotation.from_rotvec(rng.normal(0, np.radians(0.05), 3))
+        est.interval(a, b, (Rotation.from_rotvec([0.0, yb - ya, 0.0]) * noise).as_matrix())
+        est.interval(a, b, np.full((3, 3), np.nan))
+    found = est.estimate()
+    assert found is not None and found.observable and abs(found.offset_s - 0.1) < 0.005, found
+    assert found.n_intervals < clean.estimate().n_intervals  # those reading near the broken frames left out
+
+
 def test_offset_withheld_where_the_motion_cannot_tell_it():
     found = _estimator(0.1, turning=False).estimate()
     assert found is not None and not found.observable, found
