@@ -3,7 +3,8 @@
 decimals, within the last shown digit or 1.5 % of the figure, whichever is larger: the last bits of the floating
 point kernels move them (on AVX2 kernels, `make test-bits`, the raw drive's 40 m figure for plvo came out 2.59 where
 this machine's AVX-512 ones give the README's 2.57: 0.8 %, the largest change seen). Reads ../shared/data and skips
-with a reason where the clips are absent."""
+with a reason where the clips are absent. The realistic twins' pooled rows are what scripts/pool_twin_reports.py
+gives from the committed reports (runs of hours each, not repeated here)."""
 
 from __future__ import annotations
 
@@ -59,3 +60,46 @@ def test_the_readmes_real_clip_figures_come_from_its_command(prefix, tmp_path, c
         plain, aligned = _figures(out / "runs" / setting / seq / "result.json")
         for shown, measured in ((devkit_row[column], plain), (aligned_row[column], aligned)):
             assert shown == pytest.approx([round(v, 2) for v in measured], rel=0.015, abs=0.0101), (prefix, setting)
+
+
+TWIN_ROWS = {  # README row prefix -> pooled group of scripts/pool_twin_reports.py
+    "realistic KITTI twins, devkit t_err 100-800 m pooled: development": "development",
+    "the same, held out": "held-out",
+    "the same, all ten": "all",
+}
+# the reports the README's realistic-twin rows pool, as docs/results/twins_realistic_00_2d5b6a4/README.md gives them
+TWIN_REPORTS = ["twins_realistic_0af3d75", "twins_realistic_05_3cb39f7", "twins_realistic_08_c92f84d",
+                "twins_realistic_00_2d5b6a4"]
+
+
+def test_the_readmes_twin_figures_come_from_the_pooled_reports(tmp_path):
+    """The README's pooled devkit errors on the realistic twins (plvo, KISS-ICP, KISS-SLAM; development, held out,
+    all) are what scripts/pool_twin_reports.py gives from the committed reports, to the README's three decimals,
+    and its true / accepted loops are the reports' own count."""
+    import subprocess
+    import sys
+
+    poses = DATA / "kitti" / "poses"
+    if not (poses / "00.txt").exists():
+        pytest.skip(f"{poses}: KITTI's poses (the twins' truth) are not here")
+    out = tmp_path / "pooled.json"
+    reports = [str(REPO / "docs" / "results" / r / "report.json") for r in TWIN_REPORTS]
+    subprocess.run([sys.executable, str(REPO / "scripts" / "pool_twin_reports.py"), "--kitti-poses", str(poses),
+                    *reports, "--out", str(out)], check=True, capture_output=True)
+    pooled = json.loads(out.read_text())["pooled"]
+    lines = (REPO / "README.md").read_text().splitlines()
+    number = re.compile(r"(\d+\.\d+) %")
+    for prefix, group in TWIN_ROWS.items():
+        line = next((line for line in lines if line.startswith(f"| {prefix}")), None)
+        assert line is not None, f"README.md: no results row starting '| {prefix}'"
+        shown = [float(number.search(cell).group(1)) for cell in line.split("|")[2:5]]
+        got = [pooled[group]["t_err_pct"][s] for s in ("full", "kiss", "kiss_slam")]
+        assert shown == pytest.approx(got, abs=0.0006), (prefix, shown, got)
+    loops: dict[str, tuple[int, int]] = {}  # twin -> (true, accepted), from the last report holding it, as pooled
+    for r in TWIN_REPORTS:
+        report = json.loads((REPO / "docs" / "results" / r / "report.json").read_text())
+        loops.update({t: (v["true"], v["accepted"]) for t, v in report["plvo_loops"]["full"].items()})
+    true, accepted = (sum(v[k] for v in loops.values()) for k in (0, 1))
+    assert len(loops) == 10, sorted(loops)
+    line = next(line for line in lines if line.startswith("| loops accepted on the ten"))
+    assert f"| {true} / {accepted} |" in line, (true, accepted, line)
