@@ -66,7 +66,7 @@ log = logging.getLogger(__name__)
 INITIALISED, TRACKED, REINITIALISED = "initialised", "tracked", "reinitialised"
 OVERRULED = "overruled"  # the camera's estimate disagreed with the lidar's: the pose is the lidar's (lidar_check)
 HELD = "held"  # the image repeats the previous one while the lidar moves: the pose is the lidar's
-NO_MOTION_MODEL = "no motion model yet"  # a doubt of a first step (after a start or a re-initialisation)
+NO_MOTION_MODEL = "no motion model yet"  # the doubt of a run's first tracked step
 _NONE = np.zeros(0)  # no PnPL residuals (nothing solved); read-only like every result's arrays
 
 
@@ -407,7 +407,7 @@ class Frontend:
             src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
         # A first step is doubted only because nothing predicted it: a quick look from the camera's motion confirms a
         # right one (a wrong one disagrees and is looked at thoroughly, as at a keyframe). A thorough look there cost
-        # a run's start ~30 ms of CPU and, while the workers still start up, 50-80 ms of waiting (real KITTI 04).
+        # a run's start ~30 ms of CPU and, while the workers still start up, 70-105 ms of waiting (real KITTI 04).
         thorough = bool(doubts) and doubts != [NO_MOTION_MODEL]
         lidar = self._lidar_motion(src, frame, guesses, timings, thorough=thorough)
         if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
