@@ -74,8 +74,9 @@ class TimeOffsetEstimator:
 
     def frame(self, time_s: float, R_world_cam: np.ndarray, own: bool = True) -> None:
         """A frame's orientation; own: the camera's own tracking gave it (not the lidar, nor a guess)."""
-        if self._times and not time_s > self._times[-1]:
-            return  # the interpolation needs increasing times; a repeated time adds nothing
+        last = max(self._times[-1] if self._times else -np.inf, self._untrusted[-1] if self._untrusted else -np.inf)
+        if not time_s > last:
+            return  # the interpolation and the bisections need increasing times; a repeated time adds nothing
         R = np.array(R_world_cam, float)
         if not _is_rotation(R):  # a broken pose (a fault upstream) is no orientation: left out with what reads it
             self._untrusted.append(float(time_s))
