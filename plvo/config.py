@@ -156,6 +156,8 @@ class TrackingConfig:
     ransac_reproj_px: float = setting(2.0, POSITIVE, "px")
     ransac_line_px: float = setting(2.0, POSITIVE, "px")
     ransac_iterations: int = setting(1000, COUNT, "iterations")
+    # poselib's RANSAC sampling; fixed so that runs repeat, another value to see how far a result moves with the draw
+    ransac_seed: int = setting(0, COUNT0, "seed")
     outlier_reproj_px: float = setting(3.0, POSITIVE, "px")
     # landmarks of recent keyframes re-found this close to their projection
     search_radius_px: float = setting(8.0, POSITIVE, "px")

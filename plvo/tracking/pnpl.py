@@ -143,7 +143,7 @@ def _ransac(K: np.ndarray, P: np.ndarray, uv: np.ndarray, L: np.ndarray, S: np.n
         "max_iterations": int(cfg.ransac_iterations),
         "min_iterations": min(50, int(cfg.ransac_iterations)),
         "success_prob": 0.9999,
-        "seed": 0,
+        "seed": int(cfg.ransac_seed),
     }
     bundle_opt = {"loss_type": "CAUCHY", "loss_scale": 0.5 * float(cfg.ransac_reproj_px), "max_iterations": 50}
     initial = _to_poselib(init) if init is not None else None
