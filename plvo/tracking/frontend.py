@@ -436,8 +436,8 @@ class Frontend:
     def _estimate_offset(self, frame: Frame, t_src: float, lidar: LidarMotion) -> None:
         """Add a checked interval whose frames the camera kept to the time offset's estimate (where the lidar's
         motion was taken, the two agree at any offset and would pull the estimate to none); every 5th, estimate;
-        the first time the offset is observable and over crosscheck.offset_warn_s from the stated one, name it and
-        what to state.
+        the first time the offset is observable and over crosscheck.offset_warn_s from the stated one by
+        crosscheck.offset_confidence_sigmas of its standard deviations, name it and what to state.
 
         It is not corrected mid-run: the landmarks and the back end's local map made so far hold the offset, and
         moving the scans from a frame on mixed the two (docs/crosscheck.md); the run loop starts again from the
@@ -450,7 +450,7 @@ class Frontend:
         if self.offset_found is not None or n % (5 if n < 50 else 25):
             return
         est = self.offset.estimate()
-        if est is None or not est.observable or abs(est.offset_s - self._offset_s) <= cc.offset_warn_s:
+        if est is None or not est.departs_from(self._offset_s, cc.offset_warn_s, cc.offset_confidence_sigmas):
             return
         self.offset_found = est
         what = "after" if est.offset_s > 0 else "before"

@@ -54,6 +54,11 @@ class OffsetEstimate:
     observable: bool
     rate_spread_deg_s: float = 0.0  # how much the turn rate varied (MIN_RATE_SPREAD_DEG_S)
 
+    def departs_from(self, stated_s: float, by_s: float, sigmas: float) -> bool:
+        """Observable, and farther than by_s from the stated offset by `sigmas` standard deviations: worth naming.
+        Farther than by_s alone is not enough: an estimate from few intervals can be that far by chance."""
+        return self.observable and abs(self.offset_s - stated_s) - sigmas * self.sigma_s > by_s
+
     def as_dict(self) -> dict:
         return {"offset_s": round(self.offset_s, 4), "sigma_s": round(self.sigma_s, 4),
                 "n_intervals": self.n_intervals, "observable": self.observable,

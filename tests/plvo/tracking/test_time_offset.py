@@ -187,3 +187,22 @@ def test_plvo_viz_says_it_started_again_and_keeps_both_recordings(late_scans, tm
     assert data.frames("/world/camera") == list(range(40)) and data.properties["plvo_run:status"] == "complete"
     assert before.properties["plvo_run:status"] == "restarted"
     assert before.frames("/world/camera") == list(range(before.properties["plvo_run:frames_done"]))
+
+
+@pytest.mark.parametrize("offset_ms, sigma_ms, named", [
+    (-20.9, 6.2, False),  # the realistic twin of 02's first observable estimate (its rig: -3 ms): within 3 sigma of 20
+    (-12.8, 3.7, False),  # the same a few seconds on: within offset_warn_s
+    (97.6, 1.0, True),    # scans a frame late (the late-scans test's estimate)
+    (-45.0, 5.0, True),   # 45 - 15 > 20
+    (-45.0, 9.0, False),  # 45 - 27 < 20: not yet certain enough
+])
+def test_an_offset_is_named_only_when_it_departs_by_its_uncertainty_too(offset_ms, sigma_ms, named):
+    from plvo.tracking.time_offset import OffsetEstimate
+
+    cc = SystemConfig().crosscheck
+    est = OffsetEstimate(offset_ms / 1000, sigma_ms / 1000, 20, observable=True, rate_spread_deg_s=8.0)
+    assert est.departs_from(cc.time_offset_s, cc.offset_warn_s, cc.offset_confidence_sigmas) is named
+    # the same offset stated: nothing to name; unobservable: never named
+    assert not est.departs_from(offset_ms / 1000, cc.offset_warn_s, cc.offset_confidence_sigmas)
+    assert not OffsetEstimate(offset_ms / 1000, sigma_ms / 1000, 20, observable=False).departs_from(
+        cc.time_offset_s, cc.offset_warn_s, cc.offset_confidence_sigmas)
