@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from plvo.config import SystemConfig
 from plvo.data.registry import open_dataset
 from plvo.runtime.run import run_dataset
-from plvo.tracking.time_offset import TimeOffsetEstimator
+from plvo.tracking.time_offset import OffsetEstimate, TimeOffsetEstimator
 from plvo_eval.kitti_metric import absolute_trajectory_error
 from plvo_eval.kitti_variants import variant
 
@@ -197,8 +197,6 @@ def test_plvo_viz_says_it_started_again_and_keeps_both_recordings(late_scans, tm
     (-45.0, 9.0, False),  # 45 - 27 < 20: not yet certain enough
 ])
 def test_an_offset_is_named_only_when_it_departs_by_its_uncertainty_too(offset_ms, sigma_ms, named):
-    from plvo.tracking.time_offset import OffsetEstimate
-
     cc = SystemConfig().crosscheck
     est = OffsetEstimate(offset_ms / 1000, sigma_ms / 1000, 20, observable=True, rate_spread_deg_s=8.0)
     assert est.departs_from(cc.time_offset_s, cc.offset_warn_s, cc.offset_confidence_sigmas) is named
