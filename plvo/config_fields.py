@@ -161,6 +161,10 @@ def check_ranges(cfg: Any) -> None:
         if missing:
             raise ConfigError(f"config key 'loop.vocab_dir' = {vocab!r}: no {' or '.join(missing)} there "
                               "(plvo vocab --out writes them; empty: the shipped vocabularies)")
+    correction = getattr(getattr(cfg, "crosscheck", None), "extrinsic_correction_deg", (0.0, 0.0, 0.0))
+    if len(correction) != 3:
+        raise ConfigError(f"config key 'crosscheck.extrinsic_correction_deg' = {list(correction)!r} must be three "
+                          "angles (a rotation vector, degrees)")
     for small, large in ORDERED:
         if fields[small].value > fields[large].value:
             raise ConfigError(f"config key '{small}' = {fields[small].value!r} must not exceed '{large}' = "

@@ -271,17 +271,35 @@ def trust_line(system) -> str:
 
 
 def offset_line(summary: dict) -> str:
-    """A found camera-lidar time offset, as the run's last word on it (empty when none was found)."""
+    """A found camera-lidar time offset or extrinsic error, as the run's last word on it (empty when none was
+    found)."""
     for why in summary.get("restarts", ()):
-        what = "after" if why["time_offset_s"] > 0 else "before"
-        return (f"\ncamera-lidar time offset: the scans are taken {abs(why['time_offset_s']):.3f} s {what} the images "
-                f"(found at frame {why['at_frame']}); the run started again from its first frame with them moved "
-                "to the images' instants")
+        reason, out = why.get("reason", "camera-lidar time offset"), ""
+        if "time offset" in reason:
+            what = "after" if why["time_offset_s"] > 0 else "before"
+            out += (f"\ncamera-lidar time offset: the scans are taken {abs(why['time_offset_s']):.3f} s {what} the "
+                    f"images (found at frame {why['at_frame']}); the run started again from its first frame with them "
+                    "moved to the images' instants")
+        if "extrinsic" in reason:
+            out += (f"\ncamera-lidar extrinsic: turned by {_angles(why['extrinsic_correction_deg'])} deg (found at frame "
+                    f"{why['at_frame']}); the run started again from its first frame with it corrected")
+        return out
+    out = ""
     found = (summary.get("time_offset") or {}).get("found")
-    if not found:
-        return ""
-    return (f"\ncamera-lidar time offset: the scans are taken {found['offset_s']:.3f} s (+- {found['sigma_s']:.3f}) "
-            f"after the images; run again with --time-offset {found['offset_s']:.3f}")
+    if found:
+        out += (f"\ncamera-lidar time offset: the scans are taken {found['offset_s']:.3f} s (+- "
+                f"{found['sigma_s']:.3f}) after the images; run again with --time-offset {found['offset_s']:.3f}")
+    turned = (summary.get("extrinsic") or {}).get("found")
+    if turned:
+        out += (f"\ncamera-lidar extrinsic: the lidar's motions agree with the camera's through it turned by "
+                f"{_angles(turned['correction_deg'])} deg (+- {_angles(turned['sigma_deg'], signed=False)}); run again with "
+                f"crosscheck.extrinsic_correction_deg = {_angles(turned['correction_deg'])} composed with the one "
+                "stated")
+    return out
+
+
+def _angles(values, signed: bool = True) -> str:
+    return "[" + ", ".join(f"{float(v):+.2f}" if signed else f"{float(v):.2f}" for v in values) + "]"
 
 
 def _write_poses(out: Path, system, dataset, fmt: str = "kitti"):

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from plvo.config import (
     BackendSections,
@@ -52,6 +53,7 @@ from plvo.runtime.scheduler import Lags, Scheduler, drop_unreachable
 from plvo.runtime.timing import StageClock, timing_summary
 from plvo.runtime.worker_stages import BackendStage, GraphView, LoopStage, LoopStats, RunRecord
 from plvo.runtime.workers import START_TIMEOUT_S, OrderedWorker, libraries_single_threaded
+from plvo.tracking.extrinsic import corrected
 from plvo.tracking.frontend import Frontend, FrontendResult, Stages
 from plvo.tracking.keyframes import KeyframeInfo
 from plvo.tracking.map import LandmarkMap
@@ -154,10 +156,21 @@ class System:
         (crosscheck.restart_on_offset; at most one restart a run). None: go on."""
         frontend = self._frontend
         cc = self.config.crosscheck
-        if frontend is None or frontend.offset_found is None or not cc.restart_on_offset or self.restarts:
+        if frontend is None or self.restarts:
             return None
-        offset = float(frontend.offset_found.offset_s)
-        return dataclasses.replace(self.config, crosscheck=dataclasses.replace(cc, time_offset_s=offset))
+        offset = frontend.offset_found if cc.restart_on_offset else None
+        extrinsic = frontend.extrinsic_found if cc.restart_on_extrinsic else None
+        if offset is None and extrinsic is None:
+            return None
+        mended = cc
+        if offset is not None:
+            mended = dataclasses.replace(mended, time_offset_s=float(offset.offset_s))
+        if extrinsic is not None:  # found against the corrected extrinsic this run used: composed with its correction
+            both = Rotation.from_rotvec(extrinsic.correction_deg, degrees=True) * \
+                Rotation.from_rotvec(cc.extrinsic_correction_deg, degrees=True)
+            mended = dataclasses.replace(mended, extrinsic_correction_deg=tuple(
+                round(float(v), 4) for v in both.as_rotvec(degrees=True)))
+        return dataclasses.replace(self.config, crosscheck=mended)
 
     def restart(self, config: SystemConfig) -> None:
         """Start the run again from its first frame with `config`: the workers closed and made anew, the map, the
@@ -166,11 +179,15 @@ class System:
         frontend, calib = self._frontend, self._calib
         assert frontend is not None and calib is not None, "restart() of a System never stepped"
         frontend.checks.flush()  # the episodes open at this frame (the offset's own) are warned now
-        found = frontend.offset_found
-        why = {"at_frame": self._frame_now, "frames_before": self.frames_done,
-               "reason": "camera-lidar time offset",
+        found = frontend.offset_found if config.crosscheck.time_offset_s != self.config.crosscheck.time_offset_s \
+            else None
+        turned = config.crosscheck.extrinsic_correction_deg != self.config.crosscheck.extrinsic_correction_deg
+        reasons = [r for r, yes in (("camera-lidar time offset", found is not None),
+                                    ("camera-lidar extrinsic", turned)) if yes]
+        why = {"at_frame": self._frame_now, "frames_before": self.frames_done, "reason": " and ".join(reasons),
                "time_offset_s": round(config.crosscheck.time_offset_s, 4),
-               "sigma_s": None if found is None else round(float(found.sigma_s), 4)}
+               "sigma_s": None if found is None else round(float(found.sigma_s), 4),
+               "extrinsic_correction_deg": list(config.crosscheck.extrinsic_correction_deg)}
         for worker in self._workers:
             worker.close()
         self._threads_back()
@@ -182,9 +199,14 @@ class System:
                 **self._info.extra, "config_toml": config_to_toml(config), "restart": why})
             self.recorder.on_restart(self._info)
         # after the recorders' restart: the warning is in the recording of the run that counts
-        log.warning("frame %d: starting again from the first frame with the scans moved %.3f s to the images' "
-                    "instants (crosscheck.time_offset_s: the offset found there)", why["at_frame"],
-                    why["time_offset_s"])
+        if found is not None:
+            log.warning("frame %d: starting again from the first frame with the scans moved %.3f s to the images' "
+                        "instants (crosscheck.time_offset_s: the offset found there)", why["at_frame"],
+                        why["time_offset_s"])
+        if turned:
+            log.warning("frame %d: starting again from the first frame with the extrinsic turned by [%s] deg "
+                        "(crosscheck.extrinsic_correction_deg: the correction found there)", why["at_frame"],
+                        ", ".join(f"{v:+.3f}" for v in config.crosscheck.extrinsic_correction_deg))
         self.wait_ready()
 
     def wait_ready(self) -> None:
@@ -222,7 +244,10 @@ class System:
             self._depth_debug = [out.priors, out.debug]
             return out.priors
 
-        self._calib = calib
+        self._calib = calib  # as given: a restart turns it anew from the restart's config
+        turn = self.config.crosscheck.extrinsic_correction_deg
+        if any(turn):
+            calib = dataclasses.replace(calib, T_cam_velo=corrected(calib.T_cam_velo, turn))
         frontend = self._frontend = Frontend(calib, self.config.sections(TrackerSections),
                                              stages=Stages(extract_features, match_points, match_lines, depth))
         b, lags = self.config.backend, Lags.of(self.config)
@@ -403,6 +428,12 @@ class System:
                               "estimate": None if est is None else est.as_dict(),
                               "found": None if self._frontend.offset_found is None
                               else self._frontend.offset_found.as_dict()}
+        ext = self._frontend.extrinsic
+        ext_est = None if ext is None else ext.estimate()
+        out["extrinsic"] = {"correction_stated_deg": list(self.config.crosscheck.extrinsic_correction_deg),
+                            "estimate": None if ext_est is None else ext_est.as_dict(),
+                            "found": None if self._frontend.extrinsic_found is None
+                            else self._frontend.extrinsic_found.as_dict()}
         return out
 
     def timing_summary(self) -> dict[str, dict[str, float]]:

@@ -58,6 +58,7 @@ from plvo.tracking.lidar_check import (
 from plvo.tracking.map import LandmarkMap
 from plvo.tracking.pnpl import PnPLResult, refine_pose, snap_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
+from plvo.tracking.extrinsic import ExtrinsicEstimate, ExtrinsicEstimator
 from plvo.tracking.time_offset import OffsetEstimate, TimeOffsetEstimator
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 
@@ -185,6 +186,9 @@ class Frontend:
                        if self._lidar is not None and cc.estimate_time_offset else None)
         self.offset_found: OffsetEstimate | None = None  # the estimate once it was observable and large
         self._offset_s = cc.time_offset_s  # the stated offset: scans moved by it to the images' instants
+        self.extrinsic = (ExtrinsicEstimator(cc.extrinsic_prior_deg)
+                          if self._lidar is not None and cc.estimate_extrinsic else None)
+        self.extrinsic_found: ExtrinsicEstimate | None = None  # the estimate once it departed from the stated one
         # with an offset stated: the camera's velocity (twist a second, its frame) at recent frames, which moves the
         # check's lidar motions from the scans' instants to the images'
         self._twists: dict[int, np.ndarray] = {}
@@ -412,6 +416,7 @@ class Frontend:
         lidar = self._lidar_motion(src, frame, guesses, timings, thorough=thorough)
         if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
             self._estimate_offset(frame, src.time, lidar)
+            self._estimate_extrinsic(frame, se3.inv(T_src) @ T, lidar)
             return None
         if not thorough:  # a quick look disagreed: a thorough one before the camera is called wrong
             lidar = self._lidar_motion(src, frame, guesses, timings)
@@ -428,6 +433,7 @@ class Frontend:
                 self.checks.note(frame.index, "rotation disagrees with the lidar's", f"{ddeg:.1f} deg since frame "
                                  f"{src.index} (translation {dm:.2f} m): the camera's kept")
                 self._estimate_offset(frame, src.time, lidar)
+                self._estimate_extrinsic(frame, se3.inv(T_src) @ T, lidar)
                 return None
             return self._overrule(frame, feats, base, T_src, lidar, f"the camera's motion {dm:.2f} m / {ddeg:.1f} deg "
                                   f"from the lidar's since frame {src.index}", timings)
@@ -460,6 +466,31 @@ class Frontend:
         self.checks.note(frame.index, "camera-lidar time offset", f"the scans are taken {abs(est.offset_s):.3f} s "
                          f"(+- {est.sigma_s:.3f}) {what} the images (from the rotations of {est.n_intervals} "
                          f"intervals); {use}")
+
+    def _estimate_extrinsic(self, frame: Frame, T_camera: np.ndarray, lidar: LidarMotion) -> None:
+        """Add a checked interval whose frames the camera kept (T_camera its motion) to the extrinsic's estimate;
+        every 5th (25th after 50), estimate; the first time a component departs from the stated extrinsic by
+        crosscheck.extrinsic_warn_deg and extrinsic_confidence_sigmas of its standard deviations, name it. Like an
+        offset it is not corrected mid-run (the landmarks and the back end's map hold the stated one): with
+        crosscheck.restart_on_extrinsic the run starts again with it (System.restart_wanted)."""
+        if self.extrinsic is None:
+            return
+        cc = self.cfg.crosscheck
+        self.extrinsic.interval(T_camera, lidar.T_camprev_camcur)
+        n = self.extrinsic.n_intervals
+        if self.extrinsic_found is not None or n % (5 if n < 50 else 25):
+            return
+        est = self.extrinsic.estimate()
+        if est is None or not est.departs(cc.extrinsic_warn_deg, cc.extrinsic_confidence_sigmas):
+            return
+        self.extrinsic_found = est
+        angles = ", ".join(f"{v:+.2f}" for v in est.correction_deg)
+        spread = ", ".join(f"{v:.2f}" for v in est.sigma_deg)
+        use = ("the run starts again from its first frame with it corrected" if cc.restart_on_extrinsic else
+               f"run again with crosscheck.extrinsic_correction_deg = [{angles}] (composed with the one stated)")
+        self.checks.note(frame.index, "camera-lidar extrinsic", f"the lidar's motions agree with the camera's through "
+                         f"the extrinsic turned by [{angles}] deg (+- [{spread}]; x right, y down, z ahead) over "
+                         f"{est.n_intervals} intervals; {use}")
 
     def _seeded(self, prev: _FrameState, feats: FeatureSet, T_src: np.ndarray, lidar: LidarMotion,
                 timings: dict[str, float]
