@@ -281,8 +281,9 @@ def offset_line(summary: dict) -> str:
                     f"images (found at frame {why['at_frame']}); the run started again from its first frame with them "
                     "moved to the images' instants")
         if "extrinsic" in reason:
-            out += (f"\ncamera-lidar extrinsic: turned by {_angles(why['extrinsic_correction_deg'])} deg (found at frame "
-                    f"{why['at_frame']}); the run started again from its first frame with it corrected")
+            turn = _angles(why["extrinsic_correction_deg"])
+            out += (f"\ncamera-lidar extrinsic: turned by {turn} deg (found at frame {why['at_frame']}); the run "
+                    "started again from its first frame with it corrected")
         return out
     out = ""
     found = (summary.get("time_offset") or {}).get("found")
@@ -291,10 +292,10 @@ def offset_line(summary: dict) -> str:
                 f"{found['sigma_s']:.3f}) after the images; run again with --time-offset {found['offset_s']:.3f}")
     turned = (summary.get("extrinsic") or {}).get("found")
     if turned:
-        out += (f"\ncamera-lidar extrinsic: the lidar's motions agree with the camera's through it turned by "
-                f"{_angles(turned['correction_deg'])} deg (+- {_angles(turned['sigma_deg'], signed=False)}); run again with "
-                f"crosscheck.extrinsic_correction_deg = {_angles(turned['correction_deg'])} composed with the one "
-                "stated")
+        turn, spread = _angles(turned["correction_deg"]), _angles(turned["sigma_deg"], signed=False)
+        out += (f"\ncamera-lidar extrinsic: the lidar's motions agree with the camera's through it turned by {turn} "
+                f"deg (+- {spread}); run again with crosscheck.extrinsic_correction_deg = {turn} composed with the "
+                "one stated")
     return out
 
 

@@ -19,6 +19,7 @@ scans placed at the camera's poses through S cancels it (the map is turned as th
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,8 +39,8 @@ class ExtrinsicEstimate:
     motions agree with (T_cam_velo <- C T_cam_velo); sigma_deg its standard deviation a component; n_intervals the
     intervals used; translation_rms_m / rotation_rms_deg what the pairs left after it."""
 
-    correction_deg: tuple[float, float, float]
-    sigma_deg: tuple[float, float, float]
+    correction_deg: tuple[float, ...]  # three
+    sigma_deg: tuple[float, ...]
     n_intervals: int
     translation_rms_m: float
     rotation_rms_deg: float
@@ -108,7 +109,8 @@ class ExtrinsicEstimator:
             if keep.sum() < len(keep):
                 break
             turned = Rotation.from_rotvec(theta)
-            bad = (((ta - turned.apply(tb)) / sig_t) ** 2).sum(axis=1) + (((ra - turned.apply(rb)) / sig_r) ** 2).sum(axis=1)
+            bad = (((ta - turned.apply(tb)) / sig_t) ** 2).sum(axis=1) + \
+                (((ra - turned.apply(rb)) / sig_r) ** 2).sum(axis=1)
             keep = bad <= np.quantile(bad, 0.9)
             if keep.sum() < _MIN_INTERVALS:
                 return None
@@ -116,7 +118,8 @@ class ExtrinsicEstimator:
                                  tuple(float(v) for v in np.degrees(np.sqrt(np.diag(cov)))), int(keep.sum()),
                                  float(np.sqrt(np.mean(res_t ** 2))), float(np.degrees(np.sqrt(np.mean(res_r ** 2)))))
 
-    def _solve(self, ta: np.ndarray, tb: np.ndarray, ra: np.ndarray, rb: np.ndarray):
+    def _solve(self, ta: np.ndarray, tb: np.ndarray, ra: np.ndarray, rb: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gauss-Newton on theta (two steps from zero: the angles are tenths of a degree), each component of each kind
         of pair weighed by its own residual's spread (a registration's lateral step is far noisier than its
         vertical one: on real KITTI 04 ~1 deg of direction against ~0.2) -> theta, its covariance, the residuals
@@ -148,7 +151,7 @@ def _robust_sigma(e: np.ndarray) -> np.ndarray:
     return 1.4826 * np.median(np.abs(e - np.median(e, axis=0)), axis=0)
 
 
-def corrected(T_cam_velo: np.ndarray, correction_deg: tuple[float, float, float] | list[float]) -> np.ndarray:
+def corrected(T_cam_velo: np.ndarray, correction_deg: Sequence[float]) -> np.ndarray:
     """The extrinsic turned by a correction (rotation vector, degrees, camera frame): C T_cam_velo, made rigid."""
     C = np.eye(4)
     C[:3, :3] = Rotation.from_rotvec(np.radians(np.asarray(correction_deg, float))).as_matrix()

@@ -41,6 +41,7 @@ from plvo.results import KeyframeReason, KeyframeWhy, TrackingResult
 from plvo.tracking.association import FrameAssociation, search_by_projection
 from plvo.tracking.corrections import RELOCALISED, MapCorrection
 from plvo.tracking.correspondences import Correspondences
+from plvo.tracking.extrinsic import ExtrinsicEstimate, ExtrinsicEstimator
 from plvo.tracking.keyframes import KeyframeInfo, KeyframePolicy, triangulate_tracks
 from plvo.tracking.lidar_check import (
     CAMERA,
@@ -58,7 +59,6 @@ from plvo.tracking.lidar_check import (
 from plvo.tracking.map import LandmarkMap
 from plvo.tracking.pnpl import PnPLResult, refine_pose, snap_pose, solve_pnpl
 from plvo.tracking.search import predict_points, predict_segments, project_segments, search_lines_by_projection
-from plvo.tracking.extrinsic import ExtrinsicEstimate, ExtrinsicEstimator
 from plvo.tracking.time_offset import OffsetEstimate, TimeOffsetEstimator
 from plvo.types import Calibration, DepthPriors, FeatureSet, Frame, Matches
 
