@@ -24,8 +24,8 @@ REPO = Path(__file__).resolve().parents[3]
 def _outside(key: str, value, bound: float, is_open: bool, below: bool):
     """A value just outside `bound` (the bound itself when open), of the field's type."""
     step = -1 if below else 1
-    if isinstance(value, tuple):
-        return (_outside(key, value[0], bound, is_open, below),)
+    if isinstance(value, tuple):  # as long as the default (a rotation vector is three angles)
+        return (_outside(key, value[0], bound, is_open, below),) * len(value)
     if isinstance(value, int):
         return int(bound) if is_open else int(bound) + step
     return float(bound) if is_open else float(bound) + step * 1e-6 * max(1.0, abs(bound))
@@ -66,7 +66,7 @@ def test_each_fields_boundaries_are_refused_by_dotted_name():
         for bound, is_open, _ in bounds:
             inside = type(value[0] if isinstance(value, tuple) else value)(bound)
             if not is_open and not any(key in pair for pair in ORDERED):
-                config_from_dict(_nested(key, (inside,) if isinstance(value, tuple) else inside))
+                config_from_dict(_nested(key, (inside,) * len(value) if isinstance(value, tuple) else inside))
     assert checked >= len(fields)
 
 
