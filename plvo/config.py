@@ -223,9 +223,10 @@ class CrossCheckConfig:
     # from the checked intervals (a zero-mean prior of extrinsic_prior_deg a component keeps what nothing excited at
     # the stated one), reported in timings.json, and named when a component departs by extrinsic_warn_deg and
     # extrinsic_confidence_sigmas of its standard deviations. Named only when gross: the camera's own motion follows
-    # the stated extrinsic in part (its depth priors are the scan seen through it), so tenths of a degree are read
-    # short (on the realistic twin of 04, 0.4 deg of yaw injected read as 0.19) and real 04's reading (-0.26 deg of
-    # pitch, stated at the default 0) made its figures worse when applied (docs/crosscheck.md)
+    # the stated extrinsic in part (its depth priors are the scan seen through it), so an error is read short or long
+    # (on the realistic twin of 04, 0.4 deg of yaw injected moved the reading by 0.18), and real 04's reading (-0.31 /
+    # +0.30 deg of pitch / yaw) is the lidar registrations' own: applied, it made the clip's figures worse
+    # (docs/crosscheck.md)
     extrinsic_correction_deg: tuple[float, ...] = setting((0.0, 0.0, 0.0), Range(-5.0, 5.0), "deg")
     estimate_extrinsic: bool = True
     extrinsic_prior_deg: float = setting(1.0, POSITIVE, "deg")

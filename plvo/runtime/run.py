@@ -50,8 +50,9 @@ def step_through(system: System, dataset: Dataset, progress: Callable[[int], obj
                  at: list[int] | None = None) -> None:
     """Step `system` (made for this dataset, not yet stepped) through every frame, each read while the one before
     is tracked, then let its workers finish (the System stays open). When the frames show that the run's config is
-    wrong in a way a restart mends (System.restart_wanted: a camera-lidar time offset found), the System starts
-    again from the first frame with the mended config, once; the frames so far count for nothing.
+    wrong in a way a restart mends (System.restart_wanted: a camera-lidar time offset or a gross extrinsic error
+    found), the System starts again from the first frame with the mended config, once; the frames so far count for
+    nothing.
 
     progress: called with the number of frames done (1 a frame; minus the frames dropped at a restart: a tqdm
     bar's update); at: holds the index of the frame being stepped (what an error names). System.restarts says

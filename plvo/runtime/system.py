@@ -153,7 +153,8 @@ class System:
     def restart_wanted(self) -> SystemConfig | None:
         """The config to run again with from the first frame, when the frames so far found that the run's own is
         wrong in a way a restart mends: a camera-lidar time offset found while none (or another) was stated
-        (crosscheck.restart_on_offset; at most one restart a run). None: go on."""
+        (crosscheck.restart_on_offset), a gross extrinsic error (crosscheck.restart_on_extrinsic; composed with the
+        correction this run was told); at most one restart a run. None: go on."""
         frontend = self._frontend
         cc = self.config.crosscheck
         if frontend is None or self.restarts:
