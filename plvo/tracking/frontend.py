@@ -405,39 +405,44 @@ class Frontend:
         kf = self._last_kf_input
         if doubts or kf is None or self._last_kf_id < 0:
             assert self._last_input is not None
-            src, T_src, guesses = self._last_input, base, [se3.inv(base) @ T, velocity, np.eye(4)]
+            src, T_src, model = self._last_input, base, [velocity]
         else:
-            T_src = self.map.keyframe_pose(self._last_kf_id)
-            src, guesses = kf, [se3.inv(T_src) @ T, np.eye(4)]
+            src, T_src, model = kf, self.map.keyframe_pose(self._last_kf_id), []
+        moved = se3.inv(T_src) @ T  # the camera's motion over the interval
+        guesses = [moved, *model, np.eye(4)]
         # A first step is doubted only because nothing predicted it: a quick look from the camera's motion confirms a
         # right one (a wrong one disagrees and is looked at thoroughly, as at a keyframe). A thorough look there cost
         # a run's start ~30 ms of CPU and, while the workers still start up, 70-105 ms of waiting (real KITTI 04).
         thorough = bool(doubts) and doubts != [NO_MOTION_MODEL]
         lidar = self._lidar_motion(src, frame, guesses, timings, thorough=thorough)
-        if lidar.usable and agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
-            self._estimate_offset(frame, src.time, lidar)
-            self._estimate_extrinsic(frame, se3.inv(T_src) @ T, lidar)
+        if lidar.usable and agrees(moved, lidar, self.cfg.crosscheck):
+            self._learn_from(frame, src.time, moved, lidar)
             return None
         if not thorough:  # a quick look disagreed: a thorough one before the camera is called wrong
             lidar = self._lidar_motion(src, frame, guesses, timings)
-        if not lidar.usable or agrees(se3.inv(T_src) @ T, lidar, self.cfg.crosscheck):
+        if not lidar.usable or agrees(moved, lidar, self.cfg.crosscheck):
             return None
         found = self._seeded(prev, feats, T_src, lidar, timings)
         if found is None:
             cc = self.cfg.crosscheck
-            dm, ddeg = disagreement(se3.inv(T_src) @ T, lidar.T_camprev_camcur)
+            dm, ddeg = disagreement(moved, lidar.T_camprev_camcur)
             if dm <= cc.agree_m + cc.agree_share * lidar.step_m:
                 # The rotation alone disagrees and the images, matched from the lidar's, keep theirs: the images fix
                 # a rotation better than 1.5 m voxels do, and a lidar whose clock is off turns early or late at a
                 # turn's start and end (the time offset's estimate then names it); the camera is kept
                 self.checks.note(frame.index, "rotation disagrees with the lidar's", f"{ddeg:.1f} deg since frame "
                                  f"{src.index} (translation {dm:.2f} m): the camera's kept")
-                self._estimate_offset(frame, src.time, lidar)
-                self._estimate_extrinsic(frame, se3.inv(T_src) @ T, lidar)
+                self._learn_from(frame, src.time, moved, lidar)
                 return None
             return self._overrule(frame, feats, base, T_src, lidar, f"the camera's motion {dm:.2f} m / {ddeg:.1f} deg "
                                   f"from the lidar's since frame {src.index}", timings)
         return found
+
+    def _learn_from(self, frame: Frame, t_src: float, T_camera: np.ndarray, lidar: LidarMotion) -> None:
+        """A checked interval whose frames the camera kept (T_camera its motion, from the frame at t_src), to the
+        time offset's and the extrinsic's estimates."""
+        self._estimate_offset(frame, t_src, lidar)
+        self._estimate_extrinsic(frame, T_camera, lidar)
 
     def _estimate_offset(self, frame: Frame, t_src: float, lidar: LidarMotion) -> None:
         """Add a checked interval whose frames the camera kept to the time offset's estimate (where the lidar's
@@ -452,8 +457,7 @@ class Frontend:
             return
         cc = self.cfg.crosscheck
         self.offset.interval(t_src, frame.time, lidar.rotation_as_taken)
-        n = self.offset.n_intervals  # an estimate costs ~10-50 ms at a full window: ever rarer as the run goes
-        if self.offset_found is not None or n % (5 if n < 50 else 25):
+        if self.offset_found is not None or not _estimate_due(self.offset.n_intervals):
             return
         est = self.offset.estimate()
         if est is None or not est.departs_from(self._offset_s, cc.offset_warn_s, cc.offset_confidence_sigmas):
@@ -477,8 +481,7 @@ class Frontend:
             return
         cc = self.cfg.crosscheck
         self.extrinsic.interval(T_camera, lidar.T_camprev_camcur)
-        n = self.extrinsic.n_intervals
-        if self.extrinsic_found is not None or n % (5 if n < 50 else 25):
+        if self.extrinsic_found is not None or not _estimate_due(self.extrinsic.n_intervals):
             return
         est = self.extrinsic.estimate()
         if est is None or not est.departs(cc.extrinsic_warn_deg, cc.extrinsic_confidence_sigmas):
@@ -899,3 +902,9 @@ def _no_matches() -> Matches:
 def _remap(m: Matches, prev_rows: np.ndarray) -> Matches:
     """Matches of a subset of the previous features -> matches indexing the full set."""
     return Matches(np.c_[prev_rows[m.pairs[:, 0]], m.pairs[:, 1]].astype(np.int64).reshape(-1, 2), m.distance)
+
+
+def _estimate_due(n: int) -> bool:
+    """Whether the n-th interval added to an estimate (the time offset's, the extrinsic's) makes one: every 5th, every
+    25th after 50 (an offset's estimate costs ~10-50 ms at a full window: ever rarer as the run goes)."""
+    return n % (5 if n < 50 else 25) == 0
