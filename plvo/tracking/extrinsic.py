@@ -94,18 +94,15 @@ class ExtrinsicEstimator:
         tb = L[:, :3, 3]
         ra = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
         rb = Rotation.from_matrix(L[:, :3, :3]).as_rotvec()
-        theta = np.zeros(3)
-        keep = np.ones(len(pairs), bool)
-        for _ in range(2):  # the worst tenth of the intervals (a registration gone wrong) left out, then solved again
-            theta, cov, res_t, res_r, sig_t, sig_r = self._solve(ta[keep], tb[keep], ra[keep], rb[keep])
-            if keep.sum() < len(keep):
-                break
-            turned = Rotation.from_rotvec(theta)
-            bad = (((ta - turned.apply(tb)) / sig_t) ** 2).sum(axis=1) + \
-                (((ra - turned.apply(rb)) / sig_r) ** 2).sum(axis=1)
-            keep = bad <= np.quantile(bad, 0.9)
-            if keep.sum() < _MIN_INTERVALS:
-                return None
+        # solved on all, then again without the worst tenth of the intervals (a registration gone wrong)
+        theta, _, _, _, sig_t, sig_r = self._solve(ta, tb, ra, rb)
+        turned = Rotation.from_rotvec(theta)
+        bad = (((ta - turned.apply(tb)) / sig_t) ** 2).sum(axis=1) + \
+            (((ra - turned.apply(rb)) / sig_r) ** 2).sum(axis=1)
+        keep = bad <= np.quantile(bad, 0.9)
+        if keep.sum() < _MIN_INTERVALS:
+            return None
+        theta, cov, res_t, res_r, _, _ = self._solve(ta[keep], tb[keep], ra[keep], rb[keep])
         return ExtrinsicEstimate(tuple(float(v) for v in np.degrees(theta)),
                                  tuple(float(v) for v in np.degrees(np.sqrt(np.diag(cov)))), int(keep.sum()),
                                  float(np.sqrt(np.mean(res_t ** 2))), float(np.degrees(np.sqrt(np.mean(res_r ** 2)))))
@@ -116,15 +113,14 @@ class ExtrinsicEstimator:
         of pair weighed by its own residual's spread (a registration's lateral step is far noisier than its
         vertical one: on real KITTI 04 ~1 deg of direction against ~0.2) -> theta, its covariance, the residuals
         and the two spreads ((3,) each)."""
+        # the spreads from the residuals at the stated extrinsic, floored
+        sig_t = np.maximum(_robust_sigma(ta - tb), 1e-3)
+        sig_r = np.maximum(_robust_sigma(ra - rb), np.radians(0.005))
         theta = np.zeros(3)
-        sig_t = sig_r = np.ones(3)
-        for it in range(2):
+        for _ in range(2):
             R = Rotation.from_rotvec(theta).as_matrix()
             bt, br = tb @ R.T, rb @ R.T
             et, er = ta - bt, ra - br  # (n,3) residuals at theta
-            if it == 0:  # the spreads from the residuals at the stated extrinsic, floored
-                sig_t = np.maximum(_robust_sigma(et), 1e-3)
-                sig_r = np.maximum(_robust_sigma(er), np.radians(0.005))
             wt, wr = np.tile(1 / sig_t ** 2, len(et)), np.tile(1 / sig_r ** 2, len(er))
             Jt, Jr = -hat_batch(bt).reshape(-1, 3), -hat_batch(br).reshape(-1, 3)  # d(R b)/d(delta) = -[R b]x
             H = (Jt * wt[:, None]).T @ Jt + (Jr * wr[:, None]).T @ Jr + np.eye(3) / self.prior_rad ** 2
