@@ -262,15 +262,15 @@ def trust_line(system) -> str:
     summary = system.trust_summary()
     by = summary.get("frames_by_source", {})
     if not by or by.get("camera", 0) == system.frames_done:
-        return offset_line(summary)
+        return rig_line(summary)
     names = {"camera": "by the camera", "camera, seeded by the lidar": "by the camera from the lidar's motion",
              "lidar": "by the lidar alone", "motion model": "lost (motion model)"}
     parts = [f"{n} {names[k]}" for k, n in by.items() if n]
     findings = ", ".join(f"{k} {n}" for k, n in summary.get("findings", {}).items())
-    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "") + offset_line(summary)
+    return ": " + ", ".join(parts) + (f" ({findings}; see the warnings)" if findings else "") + rig_line(summary)
 
 
-def offset_line(summary: dict) -> str:
+def rig_line(summary: dict) -> str:
     """A found camera-lidar time offset or extrinsic error, as the run's last word on it (empty when none was
     found)."""
     for why in summary.get("restarts", ()):

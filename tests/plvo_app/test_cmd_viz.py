@@ -299,19 +299,19 @@ def test_library_imports_no_viewer():
 
 def test_the_last_line_says_an_extrinsic_found_and_what_was_done_with_it():
     """Started again with it: the correction and the frame; named only (restart_on_extrinsic off): what to state."""
-    from plvo_app.cmd_viz import offset_line
+    from plvo_app.cmd_viz import rig_line
 
-    restarted = offset_line({"restarts": [{"reason": "camera-lidar extrinsic", "time_offset_s": 0.0, "at_frame": 16,
+    restarted = rig_line({"restarts": [{"reason": "camera-lidar extrinsic", "time_offset_s": 0.0, "at_frame": 16,
                                            "extrinsic_correction_deg": [-0.1205, -0.3429, 0.0788]}]})
     assert restarted == ("\ncamera-lidar extrinsic: turned by [-0.12, -0.34, +0.08] deg (found at frame 16); the run "
                          "started again from its first frame with it corrected")
-    named = offset_line({"extrinsic": {"found": {"correction_deg": [-1.12, 0.66, -0.43],
+    named = rig_line({"extrinsic": {"found": {"correction_deg": [-1.12, 0.66, -0.43],
                                                  "sigma_deg": [0.14, 0.31, 0.28]}}})
     assert "turned by [-1.12, +0.66, -0.43] deg (+- [0.14, 0.31, 0.28])" in named
     assert named.endswith("run again with crosscheck.extrinsic_correction_deg = [-1.12, +0.66, -0.43] composed with "
                           "the one stated")
-    both = offset_line({"restarts": [{"reason": "camera-lidar time offset and camera-lidar extrinsic",
+    both = rig_line({"restarts": [{"reason": "camera-lidar time offset and camera-lidar extrinsic",
                                       "time_offset_s": 0.098, "at_frame": 26,
                                       "extrinsic_correction_deg": [1.0, 0.0, 0.0]}]})
     assert both.count("\n") == 2 and "0.098 s after the images" in both and "[+1.00, +0.00, +0.00]" in both
-    assert offset_line({"extrinsic": {"found": None}, "time_offset": {"found": None}}) == ""
+    assert rig_line({"extrinsic": {"found": None}, "time_offset": {"found": None}}) == ""
