@@ -25,7 +25,7 @@ import numpy as np
 
 from plvo.backend import factors
 from plvo.backend.factors import DEFAULT_STEREO_BASELINE_M, usable_landmarks
-from plvo.backend.problem import BAProblem, BAResult
+from plvo.backend.problem import BAProblem, BAResult, stereo_row_sigma
 from plvo.backend.relpose import relpose_residuals
 from plvo.config import BackendConfig
 from plvo.geometry import se3
@@ -61,9 +61,10 @@ def point_block(
 
 def point_residuals(
     K: np.ndarray, T_cw: np.ndarray, X_w: np.ndarray, uv: np.ndarray, depth: np.ndarray, baseline: float,
-    sigma: float,
+    sigma: float, depth_sigma: np.ndarray | None = None,
 ) -> tuple[np.ndarray, _Later]:
-    """point_block's r, and the function that gives its (J_pose, J_point)."""
+    """point_block's r, and the function that gives its (J_pose, J_point); depth_sigma (N,) m: each prior's own
+    sigma, which widens its u_R row's (stereo_row_sigma)."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     R, t = T_cw[:, :3, :3], T_cw[:, :3, 3]
     Xc = np.einsum("nij,nj->ni", R, X_w) + t
@@ -74,6 +75,9 @@ def point_residuals(
     r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1],
                   fx * (x - baseline) * zi + cx - u_r_meas], 1)
     r[~stereo, 2] = 0.0
+    w = np.ones((len(z), 3, 1)) / sigma
+    if depth_sigma is not None:
+        w[:, 2, 0] = 1.0 / stereo_row_sigma(fx, baseline, depth, sigma, depth_sigma)
 
     def jacobians() -> tuple[np.ndarray, np.ndarray]:
         dproj = np.zeros((len(z), 3, 3))  # d(uL, v, uR)/d Xc
@@ -82,9 +86,10 @@ def point_residuals(
         dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
         dproj[~stereo, 2] = 0.0
         dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
-        return dproj @ dXc_dxi / sigma, dproj @ R / sigma
+        return dproj @ dXc_dxi * w, dproj @ R * w
 
-    return r / sigma, jacobians
+    return r * w[:, :, 0], jacobians
+
 
 
 def line_block(
@@ -298,7 +303,7 @@ def _evaluate(problem: BAProblem, T_cw: np.ndarray, pts: np.ndarray, U: np.ndarr
     b = _Blocks()
     o = sel["pt"]
     r, later = point_residuals(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
-                               sel["depth"], baseline, cfg.sigma_point_px)
+                               sel["depth"], baseline, cfg.sigma_point_px, sel["depth_sigma"])
     b.add(r, (lay.pose[problem.pt_kf[o]], lay.point[problem.pt_idx[o]]), later, cfg.huber_point / cfg.sigma_point_px)
     o = sel["ln"]
     if len(o):
@@ -326,7 +331,7 @@ def _select(problem: BAProblem, pt_ok: np.ndarray, ln_ok: np.ndarray, use_depth_
     prior = problem.ln_prior[ln] if use_depth_priors else np.full((len(ln), 2, 3), np.nan)
     i, j = problem.rel_ij[:, 0], problem.rel_ij[:, 1]
     rel = np.flatnonzero((problem.rel_zeta > 0) & ~(problem.fixed[i] & problem.fixed[j]))
-    return {"pt": pt, "ln": ln, "depth": depth, "prior": prior, "rel": rel}
+    return {"pt": pt, "ln": ln, "depth": depth, "depth_sigma": problem.depth_sigmas(pt), "prior": prior, "rel": rel}
 
 
 # the LM state: T_cam_world (K,4,4), points (P,3), lines as U (L,3,3) and W (L,2,2)
@@ -496,13 +501,14 @@ def _levenberg_marquardt(problem: BAProblem, state: _State, origin: np.ndarray, 
 def _outliers(problem: BAProblem, state: _State, origin: np.ndarray, pt_ok: np.ndarray, ln_ok: np.ndarray,
               cfg: BackendConfig, use_depth_priors: bool, baseline: float) -> tuple[np.ndarray, np.ndarray]:
     """-> (O,) and (M,) bool: point / line observations of used landmarks whose residual (all rows, in the
-    factor's units: pixels, and metres for a line's prior row) exceeds cfg.outlier_px at `state`."""
+    factor's units: pixels, and metres for a line's prior row; a weighed depth prior's row in sigma_point_px) exceeds
+    cfg.outlier_px at `state`."""
     lay = _Layout(problem, pt_ok, ln_ok)
     sel = _select(problem, pt_ok, ln_ok, use_depth_priors)
     sel.update(origin=origin, rel=sel["rel"][:0])
     bad_pt, bad_ln = np.zeros(len(problem.pt_idx), bool), np.zeros(len(problem.ln_idx), bool)
     only_points = {**sel, "ln": sel["ln"][:0], "prior": sel["prior"][:0]}
-    only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0]}
+    only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0], "depth_sigma": sel["depth_sigma"][:0]}
     for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
                                    (bad_ln, only_lines, sel["ln"], cfg.sigma_line)):
         if len(rows):

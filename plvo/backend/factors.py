@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from plvo.backend.problem import BAProblem, BAResult
+from plvo.backend.problem import BAProblem, BAResult, stereo_row_sigma
 from plvo.config import BackendConfig
 from plvo.geometry import se3
 from plvo.geometry.line_jacobians import line_residuals_and_jacobians_batch, orth_plucker_jacobian
@@ -259,12 +259,15 @@ def _add_points(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, problem
     stereo = _robust(gtsam.noiseModel.Isotropic.Sigma(3, s), cfg.huber_point, s)
     for i in np.flatnonzero(pt_ok):
         values.insert(P(int(i)), problem.points[i].astype(float))
-    for k, i, uv, z in zip(problem.pt_kf, problem.pt_idx, problem.pt_uv, problem.pt_depth):
+    s_right = stereo_row_sigma(fx, baseline, problem.pt_depth, s, problem.depth_sigmas())
+    for k, i, uv, z, s_r in zip(problem.pt_kf, problem.pt_idx, problem.pt_uv, problem.pt_depth, s_right):
         if not pt_ok[i]:
             continue
         if use_depth_priors and np.isfinite(z) and z > 0:
             meas = gtsam.StereoPoint2(uv[0], uv[0] - fx * baseline / z, uv[1])
-            graph.add(gtsam.GenericStereoFactor3D(meas, stereo, X(int(k)), P(int(i)), cal_st))
+            noise = stereo if s_r == s else _robust(gtsam.noiseModel.Diagonal.Sigmas(np.array([s, s_r, s])),
+                                                    cfg.huber_point, s)
+            graph.add(gtsam.GenericStereoFactor3D(meas, noise, X(int(k)), P(int(i)), cal_st))
         else:
             graph.add(gtsam.GenericProjectionFactorCal3_S2(uv.astype(float), mono, X(int(k)), P(int(i)), cal))
 

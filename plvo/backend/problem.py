@@ -35,6 +35,23 @@ def _check(name: str, arr: np.ndarray, shape: tuple) -> np.ndarray:
     return arr
 
 
+def depth_prior_sigmas(rms: np.ndarray | None, factor: float) -> np.ndarray | None:
+    """BAProblem.pt_depth_sigma of observations whose priors' plane fits left rms (m; NaN unknown): factor x rms,
+    None when factor is 0 (backend.depth_prior_rms_factor)."""
+    if rms is None or factor <= 0:
+        return None
+    return factor * np.asarray(rms, float)
+
+
+def stereo_row_sigma(fx: float, baseline: float, depth: np.ndarray, sigma: float, depth_sigma: np.ndarray
+                     ) -> np.ndarray:
+    """(N,) sigma (px) of the virtual right column u_R = u_L - fx b / z of priors at depth z whose own sigma is
+    depth_sigma (m): the pixel sigma and the prior's, carried through du_R/dz = fx b / z^2, added in quadrature."""
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf)
+    ds = np.where(np.isfinite(depth_sigma), depth_sigma, 0.0)
+    return np.sqrt(sigma**2 + (fx * baseline * ds / z**2) ** 2)
+
+
 @dataclass(frozen=True)
 class BAProblem:
     """A window of keyframes, landmarks and factors.
@@ -45,7 +62,8 @@ class BAProblem:
     in that camera or NaN; relative poses: rel_ij (R,2) keyframe indices (i, j), rel_T (R,4,4) T_cam_i_cam_j,
     rel_zeta (R,) information scale; rel_weight (6,) per-component information in (rho, phi) order shared by all
     relative-pose factors, or (R,6) one row per factor (information = rel_zeta[r] * diag(rel_weight[r]); ones: the
-    paper's zeta I). `relative_pose_weights` gives a factor's row.
+    paper's zeta I). `relative_pose_weights` gives a factor's row. pt_depth_sigma (O,) metres: each depth prior's own
+    uncertainty, added to what the factor's pixel sigma allows at its depth (None, NaN or 0: the pixel sigma alone).
     """
 
     K: np.ndarray
@@ -65,6 +83,7 @@ class BAProblem:
     rel_T: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     rel_zeta: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rel_weight: np.ndarray = field(default_factory=lambda: np.ones(6))
+    pt_depth_sigma: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         _check("K", self.K, (3, 3))
@@ -75,6 +94,8 @@ class BAProblem:
         _check("pt_idx", self.pt_idx, (n_o,))
         _check("pt_uv", self.pt_uv, (n_o, 2))
         _check("pt_depth", self.pt_depth, (n_o,))
+        if self.pt_depth_sigma is not None:
+            _check("pt_depth_sigma", self.pt_depth_sigma, (n_o,))
         n_ln = _check("lines", self.lines, (None, 2, 3)).shape[0]
         n_m = _check("ln_kf", self.ln_kf, (None,)).shape[0]
         _check("ln_idx", self.ln_idx, (n_m,))
@@ -96,6 +117,15 @@ class BAProblem:
             raise PlvoError("BAProblem: field 'rel_zeta' must be >= 0")
         if np.any(~np.isfinite(self.rel_weight)) or np.any(np.asarray(self.rel_weight) < 0):
             raise PlvoError("BAProblem: field 'rel_weight' must be finite and >= 0")
+
+    def depth_sigmas(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """The depth priors' own sigmas (m) of point observations rows (all by default), 0 where none is known."""
+        n = len(self.pt_depth) if rows is None else len(rows)
+        if self.pt_depth_sigma is None:
+            return np.zeros(n)
+        s = np.asarray(self.pt_depth_sigma, float)
+        s = s if rows is None else s[rows]
+        return np.where(np.isfinite(s) & (s > 0), s, 0.0)
 
     def relative_pose_weights(self, rows: np.ndarray) -> np.ndarray:
         """The per-component information weights (len(rows),6) of the relative-pose factors rows."""

@@ -37,6 +37,7 @@ def scale_problem(problem: BAProblem, newest_kf: int) -> BAProblem:
         ln_kf=problem.ln_kf[lo], ln_idx=problem.ln_idx[lo], ln_seg=problem.ln_seg[lo], ln_prior=problem.ln_prior[lo],
         rel_ij=problem.rel_ij[ro], rel_T=problem.rel_T[ro], rel_zeta=problem.rel_zeta[ro],
         rel_weight=problem.relative_pose_weights(np.flatnonzero(ro)),
+        pt_depth_sigma=None if problem.pt_depth_sigma is None else problem.pt_depth_sigma[po],
     )
 
 

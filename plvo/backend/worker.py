@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plvo.backend.bundle_adjustment import optimize
-from plvo.backend.problem import BAProblem, BAResult, relative_pose_information
+from plvo.backend.problem import BAProblem, BAResult, depth_prior_sigmas, relative_pose_information
 from plvo.backend.scale_correction import correct_scale, scale_factor
 from plvo.config import BackendConfig, BackendSections, RegistrationConfig
 from plvo.geometry import se3
@@ -317,7 +317,8 @@ def _problem(w: WindowData, K: np.ndarray, b: BackendConfig, new_edges: tuple[Gr
     if len(w.point_ids) == 0:
         return None
     args = dict(K=K, T_world_cam=w.T_world_cam, fixed=np.arange(len(w.kf_ids)) == 0, points=w.points,
-                pt_kf=w.pt_kf, pt_idx=w.pt_idx, pt_uv=w.pt_uv, pt_depth=w.pt_depth)
+                pt_kf=w.pt_kf, pt_idx=w.pt_idx, pt_uv=w.pt_uv, pt_depth=w.pt_depth,
+                pt_depth_sigma=depth_prior_sigmas(w.pt_depth_rms, b.depth_prior_rms_factor))
     if len(w.line_ids):
         args.update(lines=w.lines, ln_kf=w.ln_kf, ln_idx=w.ln_idx, ln_seg=w.ln_seg, ln_prior=w.ln_prior)
     row = {int(k): r for r, k in enumerate(w.kf_ids)}

@@ -30,7 +30,7 @@ import logging
 import numpy as np
 
 from plvo.backend.factors import optimize_gtsam
-from plvo.backend.problem import BAProblem, BAResult, relative_pose_information
+from plvo.backend.problem import BAProblem, BAResult, depth_prior_sigmas, relative_pose_information
 from plvo.config import BackendConfig, LoopConfig
 from plvo.geometry import se3
 from plvo.geometry.camera import project
@@ -42,14 +42,16 @@ log = logging.getLogger(__name__)
 
 def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, np.ndarray, float]],
                   obs: Observations, positions: np.ndarray, depth: np.ndarray, cfg: LoopConfig,
-                  backend_cfg: BackendConfig, rotation_ratio: np.ndarray | None = None) -> tuple[BAProblem, np.ndarray]:
+                  backend_cfg: BackendConfig, rotation_ratio: np.ndarray | None = None,
+                  depth_rms: np.ndarray | None = None) -> tuple[BAProblem, np.ndarray]:
     """The global problem -> (BAProblem, landmark id of each problem point).
 
     poses (K,4,4) T_world_cam in the order of the closer's keyframes; edges (i, j, T_i_j, zeta) by index into
     poses: relative-pose factors with information zeta x the back end's (`edge_weights` says which zeta);
     obs: point observations whose `keyframe` is already an index into poses; positions (P,3) world positions of
     np.unique(obs.landmark); depth (len(obs),) z of each observation or NaN; rotation_ratio (len(edges),) each
-    edge's rotation information against its translation's (GraphEdge.rotation_ratio; default 1).
+    edge's rotation information against its translation's (GraphEdge.rotation_ratio; default 1); depth_rms
+    (len(obs),) each prior's plane fit rms (m), which weighs it (backend.depth_prior_rms_factor).
 
     Observations further than cfg.global_ba_max_px from their landmark's projection are left out: the map holds
     some gross ones (where tracking was lost and re-initialised), and 0.1 px factors with a Huber kernel still
@@ -65,6 +67,7 @@ def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, 
     used, pt_idx = np.unique(idx[keep], return_inverse=True)
     weight = relative_pose_information(backend_cfg.sigma_relative_pose, backend_cfg.sigma_relative_rotation_deg,
                                        rotation_ratio)
+    sigma = depth_prior_sigmas(depth_rms, backend_cfg.depth_prior_rms_factor)
     log.debug("global BA: %d keyframes, %d edges, %d points, %d of %d observations kept", len(poses), len(edges),
               len(used), int(keep.sum()), len(keep))
     problem = BAProblem(
@@ -74,6 +77,7 @@ def build_problem(K: np.ndarray, poses: np.ndarray, edges: list[tuple[int, int, 
         rel_ij=np.array([(i, j) for i, j, _, _ in edges], int).reshape(-1, 2),
         rel_T=np.array([T for _, _, T, _ in edges], float).reshape(-1, 4, 4),
         rel_zeta=np.array([z for *_, z in edges], float), rel_weight=weight,
+        pt_depth_sigma=None if sigma is None else sigma[keep],
     )
     return problem, lm_ids[used]
 

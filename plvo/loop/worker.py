@@ -161,7 +161,7 @@ class LoopCore:
                            d.measurement)
         edges, rotation_ratio = self._edges(ids, d.edges)
         problem, pt_ids = global_ba.build_problem(self.K, poses, edges, obs, d.positions, depth, self.cfg.loop,
-                                                   self.cfg.backend, rotation_ratio)
+                                                   self.cfg.backend, rotation_ratio, d.depth_rms)
         # It does the work of the one it superseded too: twice the iterations (not more, so that its cost stays
         # bounded when several loops close in a row).
         iterations = self.cfg.loop.global_ba_iterations * (1 + min(self._skipped, 1))

@@ -65,7 +65,8 @@ class WindowData:
     """What the back end reads of the map for one keyframe: a local window, copied at a fixed point of the run.
 
     kf_ids (W,) ascending, T_world_cam (W,4,4); point_ids (P,), points (P,3) world; per point observation in the
-    window: pt_kf (row into kf_ids), pt_idx (row into point_ids), pt_uv (,2) px, pt_depth (depth prior z, NaN none);
+    window: pt_kf (row into kf_ids), pt_idx (row into point_ids), pt_uv (,2) px, pt_depth (depth prior z, NaN none),
+    pt_depth_rms (its plane fit's rms, m; NaN unknown);
     likewise for lines: line_ids (L,), lines (L,2,3), ln_kf, ln_idx, ln_seg (,4), ln_prior (,2,3) camera-frame
     endpoints (NaN none); edges: the graph edges between the window's keyframes; version: the map's.
     """
@@ -86,13 +87,15 @@ class WindowData:
     ln_prior: np.ndarray = _none((0, 2, 3))
     edges: tuple[GraphEdge, ...] = ()
     version: int = -1
+    pt_depth_rms: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class GlobalData:
     """What the global bundle adjustment reads of the map: every keyframe (kf_ids (K,), T_world_cam (K,4,4)), every
     graph edge, and the point observations of landmarks two or more keyframes see: landmark (n,), keyframe (n,)
-    ids, measurement (n,2) px, depth (n,) prior z or NaN; positions (P,3) of np.unique(landmark)."""
+    ids, measurement (n,2) px, depth (n,) prior z or NaN, depth_rms (n,) its plane fit's rms (m, NaN unknown);
+    positions (P,3) of np.unique(landmark)."""
 
     kf_ids: np.ndarray
     T_world_cam: np.ndarray
@@ -103,6 +106,7 @@ class GlobalData:
     depth: np.ndarray
     positions: np.ndarray
     version: int = -1
+    depth_rms: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -728,7 +728,8 @@ class Frontend:
         # The observations carry this keyframe's depth priors: the back end and the global BA read them there.
         pi = np.flatnonzero(assoc.point_landmark >= 0)
         self.map.add_point_observations(assoc.point_landmark[pi], kf_id, pi, feats.keypoints[pi],
-                                        None if priors is None else _point_prior(priors, pi))
+                                        None if priors is None else _point_prior(priors, pi),
+                                        None if priors is None else _point_prior(priors, pi, "point_residual"))
         li = np.flatnonzero(assoc.line_landmark >= 0)
         self.map.add_line_observations(assoc.line_landmark[li], kf_id, li, feats.segments[li],
                                        None if priors is None else _line_prior(priors, li))
@@ -788,7 +789,8 @@ class Frontend:
         new_p = np.flatnonzero((assoc.point_landmark < 0) & priors.point_valid)
         pc = backproject(self.K, feats.keypoints[new_p], priors.point_depth[new_p])
         ids = self.map.add_points(se3.transform_points(T, pc), feats.descriptors[new_p], np.ones(len(new_p), bool),
-                                  kf_id, new_p, feats.keypoints[new_p], _point_prior(priors, new_p))
+                                  kf_id, new_p, feats.keypoints[new_p], _point_prior(priors, new_p),
+                                  _point_prior(priors, new_p, "point_residual"))
         assoc.point_landmark[new_p] = ids
         if not lines:
             return len(new_p), 0
@@ -858,9 +860,10 @@ def prior_scan(frame: Frame, sweep: Sweep | None) -> np.ndarray:
     return Sweep(sweep.before, None, times).apply(frame.scan[ahead])
 
 
-def _point_prior(priors: DepthPriors, rows: np.ndarray) -> np.ndarray:
-    """Depth prior z of keypoints rows (NaN where none), as the map stores it with each observation."""
-    d = np.asarray(priors.point_depth, float)
+def _point_prior(priors: DepthPriors, rows: np.ndarray, field: str = "point_depth") -> np.ndarray:
+    """Depth prior z of keypoints rows (NaN where none), as the map stores it with each observation; or another of
+    the priors' per-keypoint fields (the plane fit's rms, "point_residual")."""
+    d = np.asarray(getattr(priors, field), float)
     out = np.full(len(rows), np.nan)
     ok = rows < len(d)
     out[ok] = d[rows[ok]]

@@ -52,10 +52,12 @@ def _line_store() -> LandmarkTable:
 
 
 def _obs_store(meas_shape: tuple[int, ...], prior_shape: tuple[int, ...]) -> Columns:
-    # prior: the observing keyframe's depth prior of the feature (z for points, camera-frame endpoints for lines)
+    # prior: the observing keyframe's depth prior of the feature (z for points, camera-frame endpoints for lines);
+    # prior_rms: the rms of the lidar returns about the plane (points) or line (lines) it was fitted to
     return Columns({
         "landmark": ((), np.int64, -1), "keyframe": ((), np.int64, -1), "feature": ((), np.int64, -1),
         "measurement": (meas_shape, np.float64, np.nan), "prior": (prior_shape, np.float64, np.nan),
+        "prior_rms": ((), np.float64, np.nan),
     })
 
 
@@ -145,9 +147,11 @@ class LandmarkMap:
 
     # ---- adding landmarks --------------------------------------------------------------------------------
     def add_points(self, positions: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
-                   feature_idx: np.ndarray, uv: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+                   feature_idx: np.ndarray, uv: np.ndarray, depth: np.ndarray | None = None,
+                   depth_rms: np.ndarray | None = None) -> np.ndarray:
         """(n,3) world positions, (n,32) ORB, (n,) bool, keyframe id, (n,) keypoint indices, (n,2) px, optional (n,)
-        depth prior z of each -> (n,) ids. Each new landmark gets its first observation in keyframe kf_id.
+        depth prior z of each and (n,) its plane rms (m) -> (n,) ids. Each new landmark gets its first observation in
+        keyframe kf_id.
         """
         positions = np.asarray(positions, dtype=float).reshape(-1, 3)
         n = len(positions)
@@ -156,7 +160,8 @@ class LandmarkMap:
             has_depth=np.asarray(has_depth, bool).reshape(n), alive=np.ones(n, bool),
             first_kf=np.full(n, kf_id), last_seen_frame=np.full(n, self.keyframe_frame(kf_id) if n else -1),
         )
-        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2), depth)
+        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(n, 2), depth,
+                      depth_rms)
         return ids
 
     def add_lines(self, endpoints: np.ndarray, descriptors: np.ndarray, has_depth: np.ndarray, kf_id: int,
@@ -175,11 +180,12 @@ class LandmarkMap:
         return ids
 
     def add_point_observations(self, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray, uv: np.ndarray,
-                               depth: np.ndarray | None = None) -> None:
+                               depth: np.ndarray | None = None, depth_rms: np.ndarray | None = None) -> None:
         """Record that point landmarks ids (k,) were seen in keyframe kf_id at keypoints feature_idx, (k,2) px,
-        with (k,) depth priors z (NaN or None: none)."""
+        with (k,) depth priors z (NaN or None: none) and (k,) their plane rms (m)."""
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2), depth)
+        self._add_obs(self._pts, self._pobs, ids, kf_id, feature_idx, np.asarray(uv, float).reshape(-1, 2), depth,
+                      depth_rms)
 
     def add_line_observations(self, ids: np.ndarray, kf_id: int, segment_idx: np.ndarray,
                               segments: np.ndarray, prior: np.ndarray | None = None) -> None:
@@ -190,7 +196,7 @@ class LandmarkMap:
                       prior)
 
     def _add_obs(self, store: LandmarkTable, obs: Columns, ids: np.ndarray, kf_id: int, feature_idx: np.ndarray,
-                 meas: np.ndarray, prior: np.ndarray | None = None) -> None:
+                 meas: np.ndarray, prior: np.ndarray | None = None, prior_rms: np.ndarray | None = None) -> None:
         rows, found = store.rows(ids)
         k = int(found.sum())
         if k == 0:
@@ -200,6 +206,8 @@ class LandmarkMap:
                       feature=np.asarray(feature_idx).reshape(-1)[found], measurement=meas[found])
         if prior is not None:
             values["prior"] = np.asarray(prior, float).reshape(len(ids), *obs.cols["prior"].shape[1:])[found]
+        if prior_rms is not None:
+            values["prior_rms"] = np.asarray(prior_rms, float).reshape(len(ids))[found]
         obs.append(**values)
         np.add.at(store.cols["n_obs"], rows[found], 1)
         np.maximum.at(store.cols["last_kf"], rows[found], kf_id)
@@ -401,13 +409,13 @@ class LandmarkMap:
         edges = tuple(e for e in self.edges if e.i in inside and e.j in inside)
         version = self.version
         out = dict(kf_ids=kf_ids, T_world_cam=T, point_ids=pts[0], points=pts[1], pt_kf=pts[2], pt_idx=pts[3],
-                   pt_uv=pts[4], pt_depth=pts[5], edges=edges, version=version)
+                   pt_uv=pts[4], pt_depth=pts[5], pt_depth_rms=pts[6], edges=edges, version=version)
         if lns is not None:
             out.update(line_ids=lns[0], lines=lns[1], ln_kf=lns[2], ln_idx=lns[3], ln_seg=lns[4], ln_prior=lns[5])
         return WindowData(**out)
 
     def _window_obs(self, store: LandmarkTable, obs: Columns, column: str, kf_ids: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         # A keyframe's observations are recorded from when it is made on (the triangulation ablation adds some to
         # the keyframe before it then): the window's all lie after its first keyframe's start.
         start = int(self._obs_start[obs is self._lobs][int(kf_ids.min())]) if len(kf_ids) else obs.n
@@ -416,7 +424,7 @@ class LandmarkMap:
         rows = start + np.flatnonzero(keep)
         ids, idx = np.unique(obs["landmark"][rows], return_inverse=True)
         return (ids, store[column][store.rows(ids)[0]], np.searchsorted(kf_ids, obs["keyframe"][rows]), idx,
-                obs["measurement"][rows].copy(), obs["prior"][rows].copy())
+                obs["measurement"][rows].copy(), obs["prior"][rows].copy(), obs["prior_rms"][rows].copy())
 
     def global_data(self, min_views: int = 2) -> GlobalData:
         """A copy of every keyframe, every graph edge and the point observations of landmarks min_views or more
@@ -429,7 +437,8 @@ class LandmarkMap:
         return GlobalData(
             kf_ids=np.arange(self._kfs.n), T_world_cam=self._kfs["T_world_cam"].copy(), edges=tuple(self.edges),
             landmark=lm[keep].copy(), keyframe=kf[keep].copy(), measurement=self._pobs["measurement"][keep].copy(),
-            depth=self._pobs["prior"][keep].copy(), positions=self._pts["position"][self._pts.rows(ids)[0]],
+            depth=self._pobs["prior"][keep].copy(), depth_rms=self._pobs["prior_rms"][keep].copy(),
+            positions=self._pts["position"][self._pts.rows(ids)[0]],
             version=self.version)
 
     def point_ids_and_first_keyframes(self) -> tuple[np.ndarray, np.ndarray]:
