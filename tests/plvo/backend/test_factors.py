@@ -10,7 +10,7 @@ from backend_costs import costs, perturbed_window
 
 from plvo.backend import bundle_adjustment as ba
 from plvo.backend import factors
-from plvo.backend.problem import make_synthetic_problem
+from plvo.backend.problem import make_synthetic_problem, stereo_row_sigma
 from plvo.backend.relpose import relpose_block
 from plvo.config import BackendConfig
 from plvo.geometry import se3
@@ -217,3 +217,30 @@ def test_trial_steps_are_priced_without_jacobians_which_come_later_the_same():
     for part in ("Hpp", "Hpl", "Hpt", "Hln", "g"):
         np.testing.assert_array_equal(getattr(planned, part), getattr(fresh, part))
     assert np.abs(fresh.Hpl).max() > 0 and np.abs(fresh.Hln).max() > 0
+
+
+def test_weighed_depth_priors_cost_the_same_both_ways_and_widen_only_the_stereo_row():
+    """Depth priors with their own sigmas (pt_depth_sigma): the fast solver's cost equals gtsam's graph's, with the
+    robust kernels on and off; the u_R row's sigma is sqrt(s^2 + (fx b sigma_z / z^2)^2) and the other rows' s."""
+    p = perturbed_window()
+    rng = np.random.default_rng(2)
+    sig = np.where(rng.random(len(p.pt_depth)) < 0.5, rng.uniform(0.05, 0.6, len(p.pt_depth)), np.nan)
+    w = dataclasses.replace(p, pt_depth_sigma=sig)
+    assert np.isfinite(w.pt_depth[np.isfinite(sig)]).sum() >= 10  # some priors are weighed
+    for cfg in (BackendConfig(huber_point=1e6, huber_line=1e6), BackendConfig()):
+        ours, theirs, _ = costs(w, cfg, use_lines=False)
+        assert abs(ours - theirs) <= 1e-6 * ours
+        plain, _, _ = costs(p, cfg, use_lines=False)
+        assert ours < plain  # the weighed rows count less
+    fx = K[0, 0]
+    s_r = stereo_row_sigma(fx, 0.54, np.array([10.0, 20.0, np.nan]), 0.1, np.array([0.2, 0.2, 0.2]))
+    np.testing.assert_allclose(s_r, np.hypot(0.1, fx * 0.54 * 0.2 / np.array([100.0, 400.0, np.inf])))
+    T_cw = _poses(rng, 3)
+    X = np.einsum("nji,nj->ni", T_cw[:, :3, :3], rng.normal(0, 2, (3, 3)) + [0, 0, 15] - T_cw[:, :3, 3])
+    uv = rng.uniform(0, 500, (3, 2))
+    depth = np.array([10.0, 20.0, 12.0])
+    r0, later0 = ba.point_residuals(K, T_cw, X, uv, depth, 0.54, 0.1)
+    r1, later1 = ba.point_residuals(K, T_cw, X, uv, depth, 0.54, 0.1, np.array([0.2, 0.2, np.nan]))
+    np.testing.assert_allclose(r1[:, :2], r0[:, :2])
+    np.testing.assert_allclose(r1[:, 2], r0[:, 2] * 0.1 / np.r_[s_r[:2], 0.1])
+    np.testing.assert_allclose(later1()[0][:, 2], later0()[0][:, 2] * (0.1 / np.r_[s_r[:2], 0.1])[:, None])
