@@ -75,8 +75,9 @@ def point_residuals(
     r = np.stack([fx * x * zi + cx - uv[:, 0], fy * y * zi + cy - uv[:, 1],
                   fx * (x - baseline) * zi + cx - u_r_meas], 1)
     r[~stereo, 2] = 0.0
-    w = np.ones((len(z), 3, 1)) / sigma
+    w = None
     if depth_sigma is not None:
+        w = np.full((len(z), 3, 1), 1.0 / sigma)
         w[:, 2, 0] = 1.0 / stereo_row_sigma(fx, baseline, depth, sigma, depth_sigma)
 
     def jacobians() -> tuple[np.ndarray, np.ndarray]:
@@ -86,10 +87,11 @@ def point_residuals(
         dproj[:, 2, 0], dproj[:, 2, 2] = fx * zi, -fx * (x - baseline) * zi**2
         dproj[~stereo, 2] = 0.0
         dXc_dxi = np.concatenate([np.broadcast_to(np.eye(3), (len(z), 3, 3)), -hat_batch(Xc)], axis=2)
+        if w is None:
+            return dproj @ dXc_dxi / sigma, dproj @ R / sigma
         return dproj @ dXc_dxi * w, dproj @ R * w
 
-    return r * w[:, :, 0], jacobians
-
+    return (r / sigma if w is None else r * w[:, :, 0]), jacobians
 
 
 def line_block(
@@ -303,7 +305,7 @@ def _evaluate(problem: BAProblem, T_cw: np.ndarray, pts: np.ndarray, U: np.ndarr
     b = _Blocks()
     o = sel["pt"]
     r, later = point_residuals(problem.K, T_cw[problem.pt_kf[o]], pts[problem.pt_idx[o]], problem.pt_uv[o],
-                               sel["depth"], baseline, cfg.sigma_point_px, sel["depth_sigma"])
+                               sel["depth"], baseline, cfg.sigma_point_px, problem.depth_sigmas(o))
     b.add(r, (lay.pose[problem.pt_kf[o]], lay.point[problem.pt_idx[o]]), later, cfg.huber_point / cfg.sigma_point_px)
     o = sel["ln"]
     if len(o):
@@ -331,7 +333,7 @@ def _select(problem: BAProblem, pt_ok: np.ndarray, ln_ok: np.ndarray, use_depth_
     prior = problem.ln_prior[ln] if use_depth_priors else np.full((len(ln), 2, 3), np.nan)
     i, j = problem.rel_ij[:, 0], problem.rel_ij[:, 1]
     rel = np.flatnonzero((problem.rel_zeta > 0) & ~(problem.fixed[i] & problem.fixed[j]))
-    return {"pt": pt, "ln": ln, "depth": depth, "depth_sigma": problem.depth_sigmas(pt), "prior": prior, "rel": rel}
+    return {"pt": pt, "ln": ln, "depth": depth, "prior": prior, "rel": rel}
 
 
 # the LM state: T_cam_world (K,4,4), points (P,3), lines as U (L,3,3) and W (L,2,2)
@@ -508,7 +510,7 @@ def _outliers(problem: BAProblem, state: _State, origin: np.ndarray, pt_ok: np.n
     sel.update(origin=origin, rel=sel["rel"][:0])
     bad_pt, bad_ln = np.zeros(len(problem.pt_idx), bool), np.zeros(len(problem.ln_idx), bool)
     only_points = {**sel, "ln": sel["ln"][:0], "prior": sel["prior"][:0]}
-    only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0], "depth_sigma": sel["depth_sigma"][:0]}
+    only_lines = {**sel, "pt": sel["pt"][:0], "depth": sel["depth"][:0]}
     for bad, part, rows, sigma in ((bad_pt, only_points, sel["pt"], cfg.sigma_point_px),
                                    (bad_ln, only_lines, sel["ln"], cfg.sigma_line)):
         if len(rows):

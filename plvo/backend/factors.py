@@ -259,7 +259,9 @@ def _add_points(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, problem
     stereo = _robust(gtsam.noiseModel.Isotropic.Sigma(3, s), cfg.huber_point, s)
     for i in np.flatnonzero(pt_ok):
         values.insert(P(int(i)), problem.points[i].astype(float))
-    s_right = stereo_row_sigma(fx, baseline, problem.pt_depth, s, problem.depth_sigmas())
+    sigmas = problem.depth_sigmas()
+    s_right = np.full(len(problem.pt_depth), s) if sigmas is None else \
+        stereo_row_sigma(fx, baseline, problem.pt_depth, s, sigmas)
     for k, i, uv, z, s_r in zip(problem.pt_kf, problem.pt_idx, problem.pt_uv, problem.pt_depth, s_right):
         if not pt_ok[i]:
             continue

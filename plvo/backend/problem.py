@@ -118,11 +118,11 @@ class BAProblem:
         if np.any(~np.isfinite(self.rel_weight)) or np.any(np.asarray(self.rel_weight) < 0):
             raise PlvoError("BAProblem: field 'rel_weight' must be finite and >= 0")
 
-    def depth_sigmas(self, rows: np.ndarray | None = None) -> np.ndarray:
-        """The depth priors' own sigmas (m) of point observations rows (all by default), 0 where none is known."""
-        n = len(self.pt_depth) if rows is None else len(rows)
+    def depth_sigmas(self, rows: np.ndarray | None = None) -> np.ndarray | None:
+        """The depth priors' own sigmas (m) of point observations rows (all by default), 0 where none is known;
+        None when the problem has none (the factors are then computed exactly as without the weighing)."""
         if self.pt_depth_sigma is None:
-            return np.zeros(n)
+            return None
         s = np.asarray(self.pt_depth_sigma, float)
         s = s if rows is None else s[rows]
         return np.where(np.isfinite(s) & (s > 0), s, 0.0)
