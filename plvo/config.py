@@ -288,7 +288,8 @@ class BackendConfig:
     stereo_baseline_m: float = setting(0.54, POSITIVE, "m")
     # A depth prior's own sigma is this times its plane fit's rms (the returns' spread about the patch), added to
     # what sigma_point_px allows at its depth: a rough patch (foliage, a kerb's edge) weighs less. 0: unweighted.
-    depth_prior_rms_factor: float = setting(0.0, NON_NEGATIVE)
+    # 4 was the best of 0-8 on real 04 (docs/config.md#backend, docs/results/depth_prior_weight/)
+    depth_prior_rms_factor: float = setting(4.0, NON_NEGATIVE)
     huber_point: float = setting(2.0, POSITIVE, "px")
     huber_line: float = setting(2.0, POSITIVE, "px")
     # as accurate as 5 and 10, in less time (docs/config.md#backend, docs/results/cheaper_backend/,
