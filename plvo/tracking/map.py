@@ -53,7 +53,8 @@ def _line_store() -> LandmarkTable:
 
 def _obs_store(meas_shape: tuple[int, ...], prior_shape: tuple[int, ...]) -> Columns:
     # prior: the observing keyframe's depth prior of the feature (z for points, camera-frame endpoints for lines);
-    # prior_rms: the rms of the lidar returns about the plane (points) or line (lines) it was fitted to
+    # prior_rms: the rms of the lidar returns about the plane a point's prior was fitted to, which weighs it in the
+    # bundle adjustments (backend.depth_prior_rms_factor); NaN for lines, whose priors are not weighed by it
     return Columns({
         "landmark": ((), np.int64, -1), "keyframe": ((), np.int64, -1), "feature": ((), np.int64, -1),
         "measurement": (meas_shape, np.float64, np.nan), "prior": (prior_shape, np.float64, np.nan),
