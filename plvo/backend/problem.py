@@ -46,9 +46,10 @@ def depth_prior_sigmas(rms: np.ndarray | None, factor: float) -> np.ndarray | No
 def stereo_row_sigma(fx: float, baseline: float, depth: np.ndarray, sigma: float, depth_sigma: np.ndarray
                      ) -> np.ndarray:
     """(N,) sigma (px) of the virtual right column u_R = u_L - fx b / z of priors at depth z whose own sigma is
-    depth_sigma (m): the pixel sigma and the prior's, carried through du_R/dz = fx b / z^2, added in quadrature."""
+    depth_sigma (m; NaN or 0: none): the pixel sigma and the prior's, carried through du_R/dz = fx b / z^2, added in
+    quadrature."""
     z = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf)
-    ds = np.where(np.isfinite(depth_sigma), depth_sigma, 0.0)
+    ds = np.where(np.isfinite(depth_sigma) & (depth_sigma > 0), depth_sigma, 0.0)
     return np.sqrt(sigma**2 + (fx * baseline * ds / z**2) ** 2)
 
 
@@ -119,13 +120,12 @@ class BAProblem:
             raise PlvoError("BAProblem: field 'rel_weight' must be finite and >= 0")
 
     def depth_sigmas(self, rows: np.ndarray | None = None) -> np.ndarray | None:
-        """The depth priors' own sigmas (m) of point observations rows (all by default), 0 where none is known;
-        None when the problem has none (the factors are then computed exactly as without the weighing)."""
+        """The depth priors' own sigmas (m) of point observations rows (all by default; NaN or 0 where none is
+        known); None when the problem has none (the factors are then computed exactly as without the weighing)."""
         if self.pt_depth_sigma is None:
             return None
         s = np.asarray(self.pt_depth_sigma, float)
-        s = s if rows is None else s[rows]
-        return np.where(np.isfinite(s) & (s > 0), s, 0.0)
+        return s if rows is None else s[rows]
 
     def relative_pose_weights(self, rows: np.ndarray) -> np.ndarray:
         """The per-component information weights (len(rows),6) of the relative-pose factors rows."""
