@@ -61,7 +61,7 @@ class FramePoses:
         """Frame index -> (4,4) T_world_cam with every refinement of its keyframe applied, and its share of the
         next keyframe's."""
         poses = {k: map_.keyframe_pose(k) for k in {k for k, _ in self._ref.values()}}
-        shares = {a: self._correction(a, poses, map_) for a in poses}
+        shares = {a: self._correction(a, poses) for a in poses}
         out = {}
         for f, (k, T_kf_cam) in self._ref.items():
             D = shares[k]
@@ -71,14 +71,14 @@ class FramePoses:
             out[f] = poses[k] @ T_kf_cam
         return out
 
-    def _correction(self, a: int, poses: dict[int, np.ndarray], map_: LandmarkMap) -> np.ndarray | None:
+    def _correction(self, a: int, poses: dict[int, np.ndarray]) -> np.ndarray | None:
         """(6,) log of the correction D (in keyframe a's frame) that the map applied to the tracker's motion from a
-        to the keyframe after it: D T_a_b(tracked) = T_a_b(now). None when a has no successor tracked from it."""
+        to the keyframe after it: D T_a_b(tracked) = T_a_b(now). None when a has no successor tracked from it.
+        poses holds every keyframe a frame refers to, the successor among them (its own frame refers to it)."""
         nxt = self._next.get(a)
         if nxt is None:
             return None
-        T_b = poses[nxt.kf_id] if nxt.kf_id in poses else map_.keyframe_pose(nxt.kf_id)
-        return se3.log(se3.inv(poses[a]) @ T_b @ se3.inv(nxt.T_a_b))
+        return se3.log(se3.inv(poses[a]) @ poses[nxt.kf_id] @ se3.inv(nxt.T_a_b))
 
     def cam0(self, map_: LandmarkMap, calib: Calibration, frame_indices: Iterable[int]) -> np.ndarray:
         """(N,4,4) T_world_cam0 of the given frames (what KITTI pose files hold)."""
