@@ -40,8 +40,9 @@ _JACKKNIFE_GROUPS = 10  # an estimate's spread is also read from 10 solves, each
 @dataclass(frozen=True)
 class ExtrinsicEstimate:
     """correction_deg: the rotation vector (degrees, camera frame) C that turns the stated extrinsic into the one the
-    motions agree with (T_cam_velo <- C T_cam_velo); sigma_deg its standard deviation a component; n_intervals the
-    intervals used; translation_rms_m / rotation_rms_deg what the pairs left after it."""
+    motions agree with (T_cam_velo <- C T_cam_velo); sigma_deg its standard deviation a component (the larger of the
+    posterior's and the grouped jackknife's); n_intervals the intervals used; translation_rms_m / rotation_rms_deg
+    what the pairs left after it."""
 
     correction_deg: tuple[float, ...]  # three
     sigma_deg: tuple[float, ...]
